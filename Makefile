@@ -1,0 +1,32 @@
+# The two commands of the README: `make demo` (a recorded, constrained trial) and `make test`.
+# Both create or reuse .venv (Python 3.11) and install the pinned requirements once; later runs
+# only re-install when requirements*.txt, setup.py or package.xml change.
+
+PYTHON ?= python3.11
+VENV ?= .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+DATASET ?= ../shared/datasets/pusht_cchi_v7_replay.zarr
+
+.PHONY: setup demo test lint bench clean-venv
+
+$(STAMP): requirements.txt requirements-test.txt setup.py package.xml
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --disable-pip-version-check -r requirements.txt -r requirements-test.txt
+	$(BIN)/python -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e .
+	@touch $(STAMP)
+
+setup: $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/trial --output trials/demo
+
+test: $(STAMP)
+	$(BIN)/ruff check .
+	PUSHT_ZARR=$(DATASET) $(BIN)/python -m pytest -q
+
+bench: $(STAMP)
+	$(BIN)/python scripts/bench_sim.py
+
+clean-venv:
+	rm -rf $(VENV)

@@ -1,0 +1,51 @@
+"""The diffusion policy: U-Net plus the normalisers that put observations and actions in [-1, 1]."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from constrained_diffusion_ros.policy.config import PolicyConfig
+from constrained_diffusion_ros.policy.normalizer import MinMaxNormalizer
+from constrained_diffusion_ros.policy.unet import ConditionalUnet1D
+from constrained_diffusion_ros.sampling.schedulers import make_scheduler
+
+
+class DiffusionPolicy(nn.Module):
+    """Predicts action chunks from an observation history by denoising (epsilon prediction)."""
+
+    def __init__(self, config: PolicyConfig) -> None:
+        super().__init__()
+        if set(config.normalizer) != {"obs", "action"}:
+            raise ValueError("policy config needs normaliser stats for 'obs' and 'action'")
+        self.config = config
+        self.unet = ConditionalUnet1D(
+            action_dim=config.action_dim,
+            global_cond_dim=config.global_cond_dim,
+            down_dims=config.down_dims,
+            kernel_size=config.kernel_size,
+            n_groups=config.n_groups,
+            step_embed_dim=config.diffusion_step_embed_dim,
+        )
+        self.obs_normalizer = MinMaxNormalizer.from_dict(config.normalizer["obs"])
+        self.action_normalizer = MinMaxNormalizer.from_dict(config.normalizer["action"])
+        self.train_scheduler = make_scheduler(config, "ddpm")
+
+    def condition(self, obs_history: torch.Tensor) -> torch.Tensor:
+        """(B, n_obs_steps, obs_dim) raw observations -> (B, global_cond_dim) network condition."""
+        expected = (self.config.n_obs_steps, self.config.obs_dim)
+        if obs_history.ndim != 3 or tuple(obs_history.shape[1:]) != expected:
+            raise ValueError(f"observation history must be (B, {expected[0]}, {expected[1]}), "
+                             f"got {tuple(obs_history.shape)}")
+        return self.obs_normalizer.normalize(obs_history.float()).flatten(1)
+
+    def compute_loss(self, obs_history: torch.Tensor, actions: torch.Tensor,
+                     generator: torch.Generator | None = None) -> torch.Tensor:
+        """The reference's training objective: MSE between true and predicted noise."""
+        cond = self.condition(obs_history)
+        clean = self.action_normalizer.normalize(actions)
+        noise = torch.randn(clean.shape, generator=generator)
+        steps = torch.randint(0, self.config.num_train_timesteps, (clean.shape[0],),
+                              generator=generator)
+        noisy = self.train_scheduler.add_noise(clean, noise, steps)
+        return nn.functional.mse_loss(self.unet(noisy, steps, cond), noise)

@@ -1,0 +1,103 @@
+"""FiLM-conditioned 1D temporal U-Net (the ConditionalUnet1D of Diffusion Policy, Chi et al. 2023).
+
+The noisy action chunk is a 1D signal over time; the diffusion step and the observation history
+condition every residual block through a per-channel scale and bias (FiLM).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import torch
+from torch import nn
+
+
+class SinusoidalStepEmbedding(nn.Module):
+    def __init__(self, dim: int) -> None:
+        super().__init__()
+        self.dim = dim
+
+    def forward(self, steps: torch.Tensor) -> torch.Tensor:
+        half = self.dim // 2
+        freqs = torch.exp(-math.log(10000) * torch.arange(half, device=steps.device) / (half - 1))
+        angles = steps.float()[:, None] * freqs[None, :]
+        return torch.cat([angles.sin(), angles.cos()], dim=-1)
+
+
+def conv_block(channels_in: int, channels_out: int, kernel_size: int, n_groups: int) -> nn.Module:
+    return nn.Sequential(
+        nn.Conv1d(channels_in, channels_out, kernel_size, padding=kernel_size // 2),
+        nn.GroupNorm(n_groups, channels_out),
+        nn.Mish(),
+    )
+
+
+class FiLMResidualBlock(nn.Module):
+    """Two conv blocks; the condition scales and shifts the features between them."""
+
+    def __init__(self, channels_in: int, channels_out: int, cond_dim: int, kernel_size: int,
+                 n_groups: int) -> None:
+        super().__init__()
+        self.first = conv_block(channels_in, channels_out, kernel_size, n_groups)
+        self.second = conv_block(channels_out, channels_out, kernel_size, n_groups)
+        self.film = nn.Sequential(nn.Mish(), nn.Linear(cond_dim, 2 * channels_out))
+        self.skip = (nn.Conv1d(channels_in, channels_out, 1) if channels_in != channels_out
+                     else nn.Identity())
+
+    def forward(self, x: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        scale, bias = self.film(cond).unsqueeze(-1).chunk(2, dim=1)
+        out = self.second(scale * self.first(x) + bias)
+        return out + self.skip(x)
+
+
+class ConditionalUnet1D(nn.Module):
+    """Predicts the noise in a (batch, horizon, action_dim) sample given step and global cond."""
+
+    def __init__(self, action_dim: int, global_cond_dim: int, down_dims: tuple[int, ...],
+                 kernel_size: int = 5, n_groups: int = 8, step_embed_dim: int = 256) -> None:
+        super().__init__()
+        self.step_encoder = nn.Sequential(
+            SinusoidalStepEmbedding(step_embed_dim),
+            nn.Linear(step_embed_dim, 4 * step_embed_dim),
+            nn.Mish(),
+            nn.Linear(4 * step_embed_dim, step_embed_dim),
+        )
+        cond_dim = step_embed_dim + global_cond_dim
+
+        def block(c_in: int, c_out: int) -> FiLMResidualBlock:
+            return FiLMResidualBlock(c_in, c_out, cond_dim, kernel_size, n_groups)
+
+        dims = [action_dim, *down_dims]
+        pairs = list(itertools.pairwise(dims))
+        self.down = nn.ModuleList()
+        for index, (c_in, c_out) in enumerate(pairs):
+            last = index == len(pairs) - 1
+            resample = nn.Identity() if last else nn.Conv1d(c_out, c_out, 3, 2, 1)
+            self.down.append(nn.ModuleList([block(c_in, c_out), block(c_out, c_out), resample]))
+        self.mid = nn.ModuleList([block(down_dims[-1], down_dims[-1]) for _ in range(2)])
+        self.up = nn.ModuleList()
+        for c_in, c_out in reversed(pairs[1:]):  # every level upsamples; the finest skip is unused
+            upsample = nn.ConvTranspose1d(c_in, c_in, 4, 2, 1)
+            self.up.append(nn.ModuleList([block(2 * c_out, c_in), block(c_in, c_in), upsample]))
+        self.head = nn.Sequential(
+            conv_block(down_dims[0], down_dims[0], kernel_size, n_groups),
+            nn.Conv1d(down_dims[0], action_dim, 1),
+        )
+
+    def forward(self, sample: torch.Tensor, steps: torch.Tensor,
+                global_cond: torch.Tensor) -> torch.Tensor:
+        x = sample.transpose(1, 2)
+        steps = steps.expand(x.shape[0]) if steps.ndim else steps.reshape(1).expand(x.shape[0])
+        cond = torch.cat([self.step_encoder(steps), global_cond], dim=-1)
+        skips = []
+        for first, second, downsample in self.down:
+            x = second(first(x, cond), cond)
+            skips.append(x)
+            x = downsample(x)
+        for mid in self.mid:
+            x = mid(x, cond)
+        for first, second, upsample in self.up:
+            x = torch.cat([x, skips.pop()], dim=1)
+            x = upsample(second(first(x, cond), cond))
+        return self.head(x).transpose(1, 2)

@@ -1,0 +1,214 @@
+"""Trains the PushT diffusion policy on the human demonstrations: `cdr-train --help`.
+
+Resumable (a checkpoint every `--checkpoint-every` steps holds the weights, their EMA, the
+optimiser's moments and the random state, all as safetensors + JSON), reproducible from
+`--seed`, and it writes the shipped artefact: EMA weights, config with normaliser stats, and
+the loss curve as PNG and JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import torch
+from safetensors.torch import load_file, save_file
+from tqdm import tqdm
+
+from constrained_diffusion_ros.policy.config import PolicyConfig
+from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
+from constrained_diffusion_ros.policy.normalizer import MinMaxNormalizer
+from constrained_diffusion_ros.policy.weights import save_policy
+from constrained_diffusion_ros.training.dataset import WindowSampler, load_demonstrations
+
+CHECKPOINT_DIR = "checkpoint"
+
+
+class EmaWeights:
+    """EMA of the weights with the reference's warm-up: decay = 1 - (1 + step)^-0.75, capped.
+
+    Kept as a plain tensor dict (not diffusers' EMAModel) so a checkpoint is one safetensors file.
+    """
+
+    def __init__(self, model: torch.nn.Module, power: float = 0.75, max_decay: float = 0.9999):
+        self.power, self.max_decay = power, max_decay
+        self.shadow = {k: v.detach().clone() for k, v in model.state_dict().items()}
+
+    @torch.no_grad()
+    def update(self, model: torch.nn.Module, step: int) -> None:
+        decay = min(self.max_decay, 1.0 - (1.0 + step) ** -self.power)
+        current = model.state_dict()
+        torch._foreach_lerp_(list(self.shadow.values()),
+                             [current[k] for k in self.shadow], 1.0 - decay)
+
+
+def cosine_with_warmup(step: int, warmup: int, total: int) -> float:
+    if step < warmup:
+        return (step + 1) / warmup
+    progress = (step - warmup) / max(1, total - warmup)
+    return 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
+
+
+def save_checkpoint(directory: Path, step: int, policy: DiffusionPolicy, ema: EmaWeights,
+                    optimizer: torch.optim.Optimizer, generator: torch.Generator,
+                    losses: list[float]) -> None:
+    directory.mkdir(parents=True, exist_ok=True)
+    tensors = {f"model.{k}": v.contiguous() for k, v in policy.unet.state_dict().items()}
+    tensors.update({f"ema.{k}": v.contiguous() for k, v in ema.shadow.items()})
+    params = [p for group in optimizer.param_groups for p in group["params"]]
+    for index, state in ((i, optimizer.state[p]) for i, p in enumerate(params)):
+        for key, value in state.items():
+            tensors[f"optim.{index}.{key}"] = value.reshape(-1).contiguous() if key == "step" \
+                else value.contiguous()
+    tensors["rng.generator"] = generator.get_state()
+    tensors["rng.torch"] = torch.get_rng_state()
+    save_file(tensors, str(directory / "state.safetensors"))
+    meta = {"step": step, "losses": losses, "policy": policy.config.to_dict()}
+    (directory / "state.json").write_text(json.dumps(meta))
+
+
+def load_checkpoint(directory: Path, policy: DiffusionPolicy, ema: EmaWeights,
+                    optimizer: torch.optim.Optimizer, generator: torch.Generator
+                    ) -> tuple[int, list[float]]:
+    meta = json.loads((directory / "state.json").read_text())
+    if meta["policy"] != json.loads(json.dumps(policy.config.to_dict())):
+        raise ValueError(f"checkpoint in {directory} was made with another configuration")
+    tensors = load_file(str(directory / "state.safetensors"))
+    policy.unet.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
+    ema.shadow = {k[4:]: v for k, v in tensors.items() if k.startswith("ema.")}
+    params = [p for group in optimizer.param_groups for p in group["params"]]
+    for index, param in enumerate(params):
+        prefix = f"optim.{index}."
+        state = {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
+        if state:
+            state["step"] = state["step"].reshape(())
+            optimizer.state[param] = state
+    generator.set_state(tensors["rng.generator"])
+    torch.set_rng_state(tensors["rng.torch"])
+    return meta["step"], meta["losses"]
+
+
+def plot_losses(losses: list[float], path: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    window = max(1, len(losses) // 200)
+    smooth = torch.tensor(losses).unfold(0, window, window).mean(1) if len(losses) >= window \
+        else torch.tensor(losses)
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    ax.semilogy(torch.arange(len(smooth)) * window, smooth)
+    ax.set(xlabel="training step", ylabel="noise-prediction MSE", title=title)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def train(args: argparse.Namespace) -> dict:
+    torch.manual_seed(args.seed)
+    demos = load_demonstrations(args.dataset)
+    base = PolicyConfig(down_dims=tuple(args.down_dims))
+    sampler = WindowSampler(demos, base.horizon, base.n_obs_steps, base.n_action_steps)
+    normalizer = {"obs": MinMaxNormalizer.fit(demos.observations).to_dict(),
+                  "action": MinMaxNormalizer.fit(demos.actions).to_dict()}
+    config = PolicyConfig(down_dims=tuple(args.down_dims), normalizer=normalizer)
+    policy = DiffusionPolicy(config).train()
+    ema = EmaWeights(policy.unet)
+    optimizer = torch.optim.AdamW(policy.unet.parameters(), lr=args.lr, betas=(0.95, 0.999),
+                                  weight_decay=1e-6)
+    generator = torch.Generator().manual_seed(args.seed)
+    output = Path(args.output)
+    checkpoint = output / CHECKPOINT_DIR
+    step, losses = 0, []
+    if args.resume and (checkpoint / "state.json").exists():
+        step, losses = load_checkpoint(checkpoint, policy, ema, optimizer, generator)
+        print(f"resumed from {checkpoint} at step {step}")
+    n_params = sum(p.numel() for p in policy.unet.parameters())
+    print(f"{len(demos.episode_ends)} episodes, {len(sampler)} windows, {n_params / 1e6:.1f}M "
+          f"parameters, {args.steps} steps of batch {args.batch_size}")
+    started = time.monotonic()
+    order = torch.randperm(len(sampler), generator=generator)
+    cursor = 0
+    with tqdm(total=args.steps, initial=step, desc="training", unit="step",
+              disable=args.quiet) as bar:
+        while step < args.steps:
+            if cursor + args.batch_size > len(order):
+                order, cursor = torch.randperm(len(sampler), generator=generator), 0
+            obs, actions = sampler.batch(order[cursor: cursor + args.batch_size])
+            cursor += args.batch_size
+            for group in optimizer.param_groups:
+                group["lr"] = args.lr * cosine_with_warmup(step, args.warmup, args.steps)
+            loss = policy.compute_loss(obs, actions, generator)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            ema.update(policy.unet, step)
+            step += 1
+            losses.append(loss.item())
+            bar.update(1)
+            if step % 50 == 0:
+                bar.set_postfix(loss=f"{sum(losses[-50:]) / 50:.4f}")
+            if step % args.checkpoint_every == 0 or step == args.steps:
+                save_checkpoint(checkpoint, step, policy, ema, optimizer, generator, losses)
+    elapsed = time.monotonic() - started
+    final_loss = sum(losses[-500:]) / len(losses[-500:])
+    policy.unet.load_state_dict(ema.shadow)
+    facts = {"training": {
+        "command": " ".join(["cdr-train", *sys.argv[1:]]), "steps": step,
+        "batch_size": args.batch_size, "lr": args.lr, "seed": args.seed,
+        "final_loss_mean_last_500": final_loss, "wall_time_s_this_run": round(elapsed, 1),
+        "parameters": n_params, "episodes": len(demos.episode_ends),
+    }}
+    save_policy(policy, output, extra=facts)
+    plot_losses(losses, output / "loss_curve.png", f"{n_params / 1e6:.1f}M-parameter U-Net")
+    (output / "losses.json").write_text(json.dumps([round(x, 6) for x in losses]))
+    print(f"saved EMA weights to {output}; final loss {final_loss:.4f}; {elapsed:.0f} s")
+    return facts
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="cdr-train", description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--dataset", required=True, help="path to pusht_cchi_v7_replay.zarr")
+    parser.add_argument("--output", default="models/pusht_lowdim",
+                        help="directory for weights, config, loss curve and checkpoint")
+    parser.add_argument("--steps", type=int, default=20000, help="optimiser steps in total")
+    parser.add_argument("--batch-size", type=int, default=256)
+    parser.add_argument("--lr", type=float, default=3e-4, help="peak learning rate (cosine)")
+    parser.add_argument("--warmup", type=int, default=500, help="linear warm-up steps")
+    parser.add_argument("--down-dims", type=int, nargs="+", default=[64, 128, 256],
+                        help="U-Net channel widths per level")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--checkpoint-every", type=int, default=1000)
+    parser.add_argument("--resume", action="store_true", help="continue from the checkpoint")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.steps <= 0 or args.batch_size <= 0 or args.checkpoint_every <= 0:
+        print("cdr-train: --steps, --batch-size and --checkpoint-every must be positive",
+              file=sys.stderr)
+        return 2
+    try:
+        train(args)
+    except ValueError as error:
+        print(f"cdr-train: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("cdr-train: interrupted; rerun with --resume to continue from the last checkpoint",
+              file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

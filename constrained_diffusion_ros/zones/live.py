@@ -1,0 +1,103 @@
+"""The live, id-keyed zone set a ROS node updates from messages while inference reads it."""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass
+
+import shapely
+from numpy.typing import ArrayLike
+
+from constrained_diffusion_ros.zones.geometry import ZoneSet, validate_polygon
+
+ZoneId = str | int
+
+
+@dataclass(frozen=True)
+class _Zone:
+    polygon: shapely.Polygon
+    expires_at: float  # math.inf: never
+
+
+class LiveZones:
+    """Zones keyed by id, added, replaced, removed and expired from callbacks on any thread.
+
+    Readers take `snapshot()`, an immutable `ZoneSet` of the union, rebuilt only after a change,
+    so the inference loop can hold one for a whole chunk while callbacks keep updating. `version`
+    increments on every change, letting readers tell cheaply whether their snapshot is stale.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._zones: dict[ZoneId, _Zone] = {}
+        self._version = 0
+        self._snapshot: ZoneSet | None = None
+
+    def upsert(
+        self, zone_id: ZoneId, vertices: ArrayLike, now: float, lifetime: float | None = None
+    ) -> None:
+        """Add or replace a zone; empty vertices remove it (the ROS convention).
+
+        `lifetime` in the same clock as `now`; None or 0 (as in ROS markers) means forever.
+        Invalid vertices raise ValueError before anything changes, so the zones in force stay.
+        """
+        if len(vertices) == 0:
+            self.remove(zone_id)
+            return
+        if lifetime is not None and not lifetime >= 0:
+            raise ValueError(f"zone {zone_id!r}: lifetime must be >= 0 or None, got {lifetime}")
+        polygon = validate_polygon(vertices, f"zone {zone_id!r}")
+        expires_at = now + lifetime if lifetime else math.inf
+        with self._lock:
+            self._zones[zone_id] = _Zone(polygon, expires_at)
+            self._changed()
+
+    def remove(self, zone_id: ZoneId) -> bool:
+        """Drop a zone; returns whether it existed."""
+        with self._lock:
+            if self._zones.pop(zone_id, None) is None:
+                return False
+            self._changed()
+            return True
+
+    def clear(self) -> None:
+        with self._lock:
+            if self._zones:
+                self._zones.clear()
+                self._changed()
+
+    def expire(self, now: float) -> list[ZoneId]:
+        """Drop zones whose lifetime has passed at `now`; returns their ids."""
+        with self._lock:
+            gone = [i for i, zone in self._zones.items() if zone.expires_at <= now]
+            for zone_id in gone:
+                del self._zones[zone_id]
+            if gone:
+                self._changed()
+            return gone
+
+    def snapshot(self) -> ZoneSet:
+        """Union of the zones in force, cached until the next change."""
+        with self._lock:
+            if self._snapshot is None:
+                self._snapshot = ZoneSet(zone.polygon for zone in self._zones.values())
+            return self._snapshot
+
+    @property
+    def version(self) -> int:
+        return self._version
+
+    @property
+    def ids(self) -> list[ZoneId]:
+        """Ids in force, in insertion order."""
+        with self._lock:
+            return list(self._zones)
+
+    def __len__(self) -> int:
+        return len(self._zones)
+
+    def _changed(self) -> None:
+        """Record a change; caller holds the lock."""
+        self._version += 1
+        self._snapshot = None

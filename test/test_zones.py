@@ -1,0 +1,217 @@
+"""Restricted-zone geometry checked against shapely, and the live zone set's bookkeeping."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import shapely
+import torch
+
+from constrained_diffusion_ros.zones import LiveZones, RestrictedArea, ZoneSet, rectangle
+
+L_SHAPE = np.array([[100, 100], [300, 100], [300, 160], [160, 160], [160, 400], [100, 400]])
+
+
+def star(rng: np.random.Generator, center: tuple[float, float], r_min: float, r_max: float):
+    """Random star-shaped (generally concave) polygon: sorted angles, random radii."""
+    angles = np.sort(rng.uniform(0, 2 * math.pi, rng.integers(5, 14)))
+    radii = rng.uniform(r_min, r_max, len(angles))
+    return np.stack([center[0] + radii * np.cos(angles), center[1] + radii * np.sin(angles)], 1)
+
+
+def zone_cases() -> dict[str, list[np.ndarray]]:
+    rng = np.random.default_rng(7)
+    return {
+        "star": [star(rng, (256, 256), 40, 200)],
+        "star2": [star(rng, (200, 300), 20, 150)],
+        "l_shape": [L_SHAPE],
+        # Overlapping stars: union with notches and possibly holes.
+        "star_union": [star(rng, (150 + 60 * i, 250), 30, 120) for i in range(4)],
+        "overlap_rects": [rectangle(100, 100, 250, 200), rectangle(200, 150, 350, 350)],
+        "adjacent_rects": [rectangle(100, 100, 200, 200), rectangle(200, 100, 300, 250)],
+        "narrow_gap": [rectangle(50, 50, 200, 450), rectangle(210, 50, 400, 450), L_SHAPE + 100],
+    }
+
+
+CASES = zone_cases()
+
+
+def random_points(n: int, seed: int = 0) -> torch.Tensor:
+    return torch.from_numpy(np.random.default_rng(seed).uniform(-20, 532, (n, 2)))
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_contains_and_distance_match_shapely(name: str) -> None:
+    zones = ZoneSet.from_polygons(CASES[name])
+    union = shapely.union_all([shapely.Polygon(p) for p in CASES[name]])
+    points = random_points(1000)
+    x, y = points.numpy().T
+    boundary_distance = shapely.distance(union.boundary, shapely.points(x, y))
+    inside = shapely.contains_xy(union, x, y)
+    clear = boundary_distance > 1e-6
+    assert clear.sum() > 900 and 50 < inside.sum() < 950  # a real mix of inside and outside
+
+    assert np.array_equal(zones.contains(points).numpy()[clear], inside[clear])
+    signed = zones.signed_distance(points).numpy()
+    np.testing.assert_allclose(np.abs(signed), boundary_distance, atol=1e-4)
+    assert np.array_equal((signed < 0)[clear], inside[clear])
+    assert zones.area == pytest.approx(union.area)
+
+
+def test_overlapping_union_uses_union_boundary() -> None:
+    zones = ZoneSet.from_polygons([rectangle(0, 0, 100, 100), rectangle(50, 0, 200, 100)])
+    assert len(zones) == 1 and zones.area == pytest.approx(200 * 100)
+    point = torch.tensor([75.0, 50.0])  # in the overlap, on both rectangles' inner edges' lines
+    assert zones.contains(point)
+    # 25 px from each original rectangle's edge, but 50 px from the union's boundary.
+    assert zones.signed_distance(point).item() == pytest.approx(-50.0)
+
+
+def test_outward_direction_hand_made() -> None:
+    zones = ZoneSet.from_polygons([rectangle(0, 0, 100, 100)])
+    points = torch.tensor([[5.0, 50.0], [50.0, 97.0], [-10.0, 50.0], [0.0, 50.0], [100.0, 30.0]])
+    expected = torch.tensor([[-1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [-1.0, 0.0], [1.0, 0.0]])
+    torch.testing.assert_close(zones.outward_direction(points), expected)
+
+    union = ZoneSet.from_polygons(CASES["star_union"])
+    norms = union.outward_direction(random_points(500)).norm(dim=-1)
+    torch.testing.assert_close(norms, torch.ones_like(norms))
+
+
+def test_queries_keep_batch_shape_and_dtype() -> None:
+    zones = ZoneSet.from_polygons([L_SHAPE])
+    assert isinstance(zones, RestrictedArea)
+    points = random_points(3 * 4 * 16).reshape(3, 4, 16, 2).float()
+    assert zones.contains(points).shape == (3, 4, 16)
+    assert zones.signed_distance(points).dtype == torch.float32
+    assert zones.outward_direction(points).shape == (3, 4, 16, 2)
+    assert zones.project_out(points, 5.0).dtype == torch.float32
+    fraction = zones.segment_clear_fraction(points[..., :-1, :], points[..., 1:, :])
+    assert fraction.shape == (3, 4, 15) and fraction.dtype == torch.float32
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("margin", [0.0, 15.0])
+@pytest.mark.parametrize("name", ["star_union", "l_shape", "adjacent_rects", "narrow_gap"])
+def test_project_out_leaves_nothing_inside(name: str, margin: float, dtype: torch.dtype) -> None:
+    zones = ZoneSet.from_polygons(CASES[name])
+    points = random_points(1000, seed=1).to(dtype)
+    before = zones.signed_distance(points.double())
+    moved = zones.project_out(points, margin)
+
+    assert moved.dtype == dtype
+    assert (zones.signed_distance(moved.double()) >= margin - 1e-6).all()
+    far = before >= margin
+    assert (~far).sum() > 50 and torch.equal(moved[far], points[far])
+    # Moved about as little as possible: the nearest clear point lies on the boundary of the
+    # union grown by `margin` (finely approximated here); allow float32 rounding and arc sag.
+    grown = shapely.union_all([shapely.Polygon(p) for p in CASES[name]])
+    grown = grown.buffer(margin, quad_segs=256) if margin else grown
+    near = (~far).numpy()
+    x, y = points.double().numpy()[near].T
+    shortest = shapely.distance(grown.boundary, shapely.points(x, y))
+    travelled = (moved.double() - points.double()).norm(dim=-1).numpy()[near]
+    assert (travelled <= shortest + 2e-3 * margin + 1e-2).all()
+
+
+def test_project_out_escapes_a_gap_narrower_than_twice_the_margin() -> None:
+    zones = ZoneSet.from_polygons([rectangle(0, 0, 100, 100), rectangle(110, 0, 200, 100)])
+    moved = zones.project_out(torch.tensor([105.0, 90.0]), margin=15.0)
+    # Clear of both top corners: 15 px from (100, 100) and (110, 100) at x = 105.
+    torch.testing.assert_close(
+        moved, torch.tensor([105.0, 100 + math.sqrt(15**2 - 5**2)]), atol=0.05, rtol=0
+    )
+
+
+def test_segment_clear_fraction_and_crosses() -> None:
+    zones = ZoneSet.from_polygons([rectangle(100, 100, 200, 200)])
+    starts = torch.tensor([[0.0, 150.0], [0.0, 50.0], [150.0, 150.0], [0.0, 150.0], [0.0, 100.0]])
+    ends = torch.tensor(
+        [[300.0, 150.0], [300.0, 50.0], [400.0, 150.0], [100.0, 150.0], [300.0, 100.0]]
+    )
+    # through it, misses it, starts inside, ends on the boundary, slides along an edge
+    fraction = zones.segment_clear_fraction(starts, ends)
+    torch.testing.assert_close(fraction, torch.tensor([1 / 3, 1.0, 0.0, 1.0, 1.0]))
+    assert zones.crosses(starts, ends).tolist() == [True, False, True, False, False]
+    # Through vertices: into a corner, grazing a corner, entering past the concave notch tip
+    # (160, 160) straight or after sliding along an edge, grazing that tip.
+    corners = torch.tensor([[[0.0, 0.0], [150.0, 150.0]], [[0.0, 200.0], [200.0, 0.0]]])
+    fraction = zones.segment_clear_fraction(corners[:, 0], corners[:, 1])
+    torch.testing.assert_close(fraction, torch.tensor([2 / 3, 1.0]))
+    l_shape = ZoneSet.from_polygons([L_SHAPE])
+    segments = torch.tensor(
+        [
+            [[200.0, 300.0], [200.0, 50.0]],
+            [[220.0, 220.0], [100.0, 100.0]],
+            [[250.0, 160.0], [100.0, 160.0]],
+            [[200.0, 200.0], [140.0, 140.0]],
+            [[220.0, 200.0], [120.0, 100.0]],
+        ]
+    )
+    fraction = l_shape.segment_clear_fraction(segments[:, 0], segments[:, 1])
+    torch.testing.assert_close(fraction, torch.tensor([140 / 250, 0.5, 0.6, 2 / 3, 0.4]))
+    tangent = torch.tensor([[[160.0, 240.0], [160.0, 170.0]], [[400.0, 160.0], [170.0, 160.0]]])
+    assert not l_shape.crosses(tangent[:, 0], tangent[:, 1]).any()
+
+
+@pytest.mark.parametrize(
+    ("vertices", "fault"),
+    [
+        ([[0, 0], [1, 1]], "at least 3 distinct"),
+        ([[0, 0], [0, 0], [1, 1], [1, 1]], "at least 3 distinct"),
+        ([[0, 0], [1, math.nan], [1, 1]], "finite"),
+        ([[0, 0], [1, 1], [2, 2], [3, 3]], "collinear"),
+        ([[0, 0], [1, 1], [1, 0], [0, 1]], "Self-intersection"),
+    ],
+)
+def test_degenerate_polygons_refused(vertices: list, fault: str) -> None:
+    with pytest.raises(ValueError, match=f"polygon 1: .*{fault}"):
+        ZoneSet.from_polygons([rectangle(0, 0, 10, 10), vertices])
+
+
+def test_inflate_keeps_a_disc_out() -> None:
+    inflated = ZoneSet.from_polygons([rectangle(100, 100, 200, 200)]).inflate(15.0)
+    assert inflated.contains(torch.tensor([[210.0, 150.0], [150.0, 90.0]])).all()
+    assert not inflated.contains(torch.tensor([[220.0, 150.0], [150.0, 80.0]])).any()
+    # Round joins: a corner's diagonal clearance is 15, not 15 * sqrt(2).
+    assert inflated.signed_distance(torch.tensor([212.0, 212.0])).item() > 0
+
+
+def test_empty_set_restricts_nothing() -> None:
+    zones = ZoneSet.empty()
+    points = random_points(10)
+    assert zones.is_empty and len(zones) == 0 and zones.polygons == []
+    assert not zones.contains(points).any()
+    assert torch.isinf(zones.signed_distance(points)).all()
+    assert torch.equal(zones.project_out(points, 15.0), points)
+    assert (zones.segment_clear_fraction(points, points.flip(0)) == 1).all()
+
+
+def test_live_zones_bookkeeping() -> None:
+    live = LiveZones()
+    square = rectangle(0, 0, 10, 10)
+    live.upsert("a", square, now=0.0)
+    live.upsert(7, rectangle(20, 0, 30, 10), now=0.0, lifetime=5.0)
+    assert live.ids == ["a", 7] and live.version == 2
+    first = live.snapshot()
+    assert first is live.snapshot() and first.area == pytest.approx(200)
+
+    live.upsert("a", rectangle(0, 0, 20, 10), now=1.0)  # replace: now touches zone 7
+    assert live.version == 3 and len(live.snapshot()) == 1 and first.area == pytest.approx(200)
+
+    with pytest.raises(ValueError, match="zone 'a'"):
+        live.upsert("a", [[0, 0], [1, 1], [1, 0], [0, 1]], now=2.0)
+    assert live.version == 3 and live.snapshot().area == pytest.approx(300)
+
+    assert live.expire(now=4.9) == [] and live.expire(now=5.0) == [7]
+    assert live.version == 4 and live.snapshot().area == pytest.approx(200)
+
+    live.upsert("a", [], now=6.0)  # empty polygon removes the id
+    assert live.ids == [] and live.version == 5 and live.snapshot().is_empty
+    assert not live.remove("a") and live.version == 5
+
+    live.upsert("b", square, now=7.0)
+    live.clear()
+    assert len(live) == 0 and live.version == 7

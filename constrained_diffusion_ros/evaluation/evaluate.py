@@ -1,0 +1,113 @@
+"""Reproduce the paper's Table I and our extensions in one command: `evaluate --help`.
+
+Every configuration runs its scenarios x seeds as one batch of episodes (25 seeded scenes from
+seed 100000, 200 action steps each). Writes table.md, results.csv/json, s_vs_r.png and
+frames.png to the output directory and prints the table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from constrained_diffusion_ros.evaluation import report
+from constrained_diffusion_ros.evaluation.runner import evaluate_configuration
+from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
+from constrained_diffusion_ros.paths import config_dir, default_model_dir
+from constrained_diffusion_ros.policy.weights import load_policy
+from constrained_diffusion_ros.sampling.constraints import load_configurations
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="evaluate", description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--model", default=str(default_model_dir()), help="policy directory")
+    parser.add_argument("--scenarios", nargs="+", default=["all"],
+                        help="scenario names from config/scenarios.yaml, 'paper' or 'all'")
+    parser.add_argument("--configs", nargs="+", default=["all"],
+                        help="configuration names from config/configurations.yaml, 'paper' "
+                             "or 'all'")
+    parser.add_argument("--episodes", type=int, default=25, help="seeds from --first-seed on")
+    parser.add_argument("--first-seed", type=int, default=100000)
+    parser.add_argument("--steps", type=int, default=200, help="action steps per episode")
+    parser.add_argument("--output", default="docs/evaluation", help="report directory")
+    parser.add_argument("--figure", nargs=2, default=["center_0.2", "r_g10_p_safe"],
+                        metavar=("SCENARIO", "CONFIG"), help="cell drawn in frames.png")
+    parser.add_argument("--config-dir", default=str(config_dir()),
+                        help="directory with scenarios.yaml and configurations.yaml")
+    return parser
+
+
+def select(available: dict, wanted: list[str], kind: str) -> list:
+    if wanted == ["all"]:
+        return list(available.values())
+    if wanted == ["paper"]:
+        return [item for item in available.values() if item.paper]
+    unknown = [name for name in wanted if name not in available]
+    if unknown:
+        raise ValueError(f"unknown {kind} {unknown}; known: {', '.join(available)}")
+    return [available[name] for name in wanted]
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.episodes < 1 or args.steps < 1:
+        raise ValueError("--episodes and --steps must be positive")
+    directory = Path(args.config_dir)
+    scenarios = select(load_scenarios(directory / "scenarios.yaml"), args.scenarios, "scenarios")
+    configs = select(load_configurations(directory / "configurations.yaml"), args.configs,
+                     "configurations")
+    policy = load_policy(args.model)
+    seeds = list(range(args.first_seed, args.first_seed + args.episodes))
+    output = Path(args.output)
+    output.mkdir(parents=True, exist_ok=True)
+    cells, started, figure = [], time.monotonic(), None
+    for config in tqdm(configs, desc="configurations", unit="config"):
+        chosen = [s for s in scenarios if s.paper or config.scenarios == "all"]
+        if not chosen:
+            continue
+        t0 = time.monotonic()
+        results, log = evaluate_configuration(policy, config, chosen, seeds, args.steps)
+        cells += results
+        names = [s.name for s in chosen]
+        tqdm.write(f"{config.name}: {len(chosen)} scenarios x {len(seeds)} episodes in "
+                   f"{time.monotonic() - t0:.0f} s")
+        if config.name == args.figure[1] and args.figure[0] in names:
+            index = names.index(args.figure[0])
+            figure = (log, index * len(seeds), chosen[index], config)
+    wall = time.monotonic() - started
+    paper_cells = sum(1 for c in cells if c.scenario in {s.name for s in scenarios if s.paper}
+                      and c.configuration in {k.name for k in configs if k.paper})
+    table = report.markdown_table(cells, scenarios, configs, report.load_paper_table())
+    report.write_tables(cells, output)
+    report.plot_s_against_r(cells, configs, output / "s_vs_r.png")
+    if figure:
+        log, episode, scenario, config = figure
+        report.plot_frames(log, episode, scenario, output / "frames.png",
+                           f"{config.display} on {scenario.label}, seed {seeds[0]}")
+    summary = (f"{len(cells)} cells ({paper_cells} of the paper's), {len(seeds)} episodes "
+               f"each, {args.steps} steps; wall time {wall:.0f} s on {torch.get_num_threads()} "
+               "threads")
+    (output / "table.md").write_text(
+        f"# Evaluation\n\n{summary}\n\nCells: `s / r` (ours), then the paper's Table I value.\n\n"
+        f"{table}\n\n## Every metric\n\n{report.details_table(cells)}\n")
+    print(table)
+    print(summary)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return run(args)
+    except ValueError as error:
+        print(f"evaluate: {error}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

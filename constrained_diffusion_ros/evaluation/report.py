@@ -1,0 +1,112 @@
+"""Tables and figures of an evaluation: Markdown laid out like the paper's Table I (with its
+values beside ours), CSV and JSON of every cell, a Fig. 1-like strip of frames, s against r."""
+
+from __future__ import annotations
+
+import csv
+import json
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from constrained_diffusion_ros.evaluation.rollout import RolloutLog
+from constrained_diffusion_ros.evaluation.runner import CellResult
+from constrained_diffusion_ros.evaluation.scenarios import Scenario
+from constrained_diffusion_ros.paths import config_dir
+from constrained_diffusion_ros.sampling.constraints import ConstraintConfig
+
+
+def load_paper_table(path: Path | None = None) -> dict[str, dict[str, list[float]]]:
+    return yaml.safe_load((path or config_dir() / "paper_table1.yaml").read_text())
+
+
+def markdown_table(cells: Sequence[CellResult], scenarios: Sequence[Scenario],
+                   configs: Sequence[ConstraintConfig], paper: dict) -> str:
+    """Rows: scenarios; columns: configurations; cells: `s / r` ours, then the paper's."""
+    by_key = {(c.scenario, c.configuration): c for c in cells}
+    header = "| scenario | " + " | ".join(c.display for c in configs) + " |"
+    lines = [header, "|" + " --- |" * (len(configs) + 1)]
+    for scenario in scenarios:
+        row = [scenario.label]
+        for config in configs:
+            cell = by_key.get((scenario.name, config.name))
+            text = "" if cell is None else f"{cell.s:.3f} / {cell.r:.2f}"
+            quoted = paper.get(scenario.name, {}).get(config.name)
+            if quoted:
+                text += f" (paper {quoted[0]:.3g} / {quoted[1]:.3g})"
+            row.append(text or "-")
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines)
+
+
+def details_table(cells: Sequence[CellResult]) -> str:
+    columns = ["scenario", "configuration", "s", "final_score", "success_rate", "r", "r_body",
+               "path_crossings", "starts_inside", "ms_per_chunk"]
+    lines = ["| " + " | ".join(columns) + " |", "|" + " --- |" * len(columns)]
+    for cell in cells:
+        values = cell.to_dict()
+        lines.append("| " + " | ".join(
+            f"{values[c]:.3f}" if isinstance(values[c], float) else str(values[c])
+            for c in columns) + " |")
+    return "\n".join(lines)
+
+
+def write_tables(cells: Sequence[CellResult], output: Path) -> None:
+    rows = [c.to_dict() for c in cells]
+    (output / "results.json").write_text(json.dumps(rows, indent=2) + "\n")
+    with (output / "results.csv").open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def plot_s_against_r(cells: Sequence[CellResult], configs: Sequence[ConstraintConfig],
+                     path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 4.5))
+    markers = "os^vD<>ph*xP"
+    for index, config in enumerate(configs):
+        mine = [c for c in cells if c.configuration == config.name]
+        ax.scatter([c.r for c in mine], [c.s for c in mine], label=config.display,
+                   marker=markers[index % len(markers)], alpha=0.8)
+    ax.set_xscale("symlog", linthresh=1.0)
+    ax.set(xlabel="r: executed steps commanded inside a zone (mean per episode)",
+           ylabel="s: mean best score", title="Score against violations, every cell")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="lower left", ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_frames(log: RolloutLog, episode: int, scenario: Scenario, path: Path, title: str,
+                frames: int = 6) -> None:
+    """A strip like the paper's Fig. 1: zone red, pusher blue, T grey, goal green."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sim_bridge import render_scene
+
+    n_steps = log.commanded.shape[1]
+    picks = np.linspace(0, n_steps, frames).astype(int)
+    fig, axes = plt.subplots(1, frames, figsize=(2.2 * frames, 2.6))
+    for ax, step in zip(axes, picks):
+        setpoint = log.commanded[episode, min(step, n_steps - 1)]
+        image = render_scene(log.states[episode, step], size=256,
+                             zones=scenario.polygons_at(step), setpoint=setpoint)
+        ax.imshow(image)
+        ax.set_title(f"step {step}, score {log.scores[episode, max(step - 1, 0)]:.2f}",
+                     fontsize=8)
+        ax.axis("off")
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

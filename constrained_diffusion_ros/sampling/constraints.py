@@ -1,0 +1,133 @@
+"""Constraint configurations (from `config/configurations.yaml`) and the planner that applies
+one: it turns an observation history and a restricted area into a constrained action chunk."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import torch
+import yaml
+
+from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
+from constrained_diffusion_ros.sampling.hooks import (
+    FinalProjection,
+    GradientPush,
+    PathRepair,
+    Resampling,
+)
+from constrained_diffusion_ros.sampling.sampler import DenoisingSampler, SampleHook
+from constrained_diffusion_ros.zones.episodes import inflate_area
+from constrained_diffusion_ros.zones.geometry import RestrictedArea
+from sim_bridge import AGENT_RADIUS
+
+
+@dataclass(frozen=True)
+class ConstraintConfig:
+    """Which hooks run, with which strength, under which sampler."""
+
+    name: str
+    label: str = ""
+    resample: bool = False
+    push: float = 0.0  # lambda: pixels per denoising step; 0 turns the push off
+    project: bool = False
+    margin: float = 1.0  # clearance (px) left by projection and path repair
+    inflate: bool = False  # grow zones by the pusher radius so its body stays out too
+    path_repair: bool = False
+    from_scratch: int = 0  # >0: no hooks; draw this many whole chunks, keep the first that fits
+    sampler: str = "ddpm"
+    denoising_steps: int | None = None
+    paper: bool = False  # one of the paper's six configurations
+    scenarios: str = "all"  # evaluate on "all" scenarios or only the "paper" ones
+
+    def __post_init__(self) -> None:
+        if self.push < 0 or self.margin < 0 or self.from_scratch < 0:
+            raise ValueError(f"configuration {self.name!r}: push, margin and from_scratch "
+                             "must be non-negative")
+        if self.from_scratch and (self.resample or self.push or self.path_repair):
+            raise ValueError(f"configuration {self.name!r}: from_scratch replaces the hooks")
+        if self.scenarios not in ("all", "paper"):
+            raise ValueError(f"configuration {self.name!r}: scenarios must be all or paper")
+        if self.sampler not in ("ddpm", "ddim"):
+            raise ValueError(f"configuration {self.name!r}: sampler must be ddpm or ddim")
+
+    @property
+    def display(self) -> str:
+        return self.label or self.name
+
+    @property
+    def constrains(self) -> bool:
+        """Whether the zones change what it plans (the "None" rows ignore them)."""
+        return bool(self.resample or self.push or self.project or self.path_repair
+                    or self.from_scratch)
+
+
+def load_configurations(path: str | Path) -> dict[str, ConstraintConfig]:
+    """Reads `name: {field: value}` entries; unknown fields are refused by name."""
+    document = yaml.safe_load(Path(path).read_text()) or {}
+    known = {f.name for f in fields(ConstraintConfig)}
+    configs = {}
+    for name, entry in document.items():
+        entry = entry or {}
+        unknown = sorted(set(entry) - known)
+        if unknown:
+            raise ValueError(f"{path}: configuration {name!r} has unknown keys {unknown}")
+        configs[name] = ConstraintConfig(name=name, **entry)
+    return configs
+
+
+class ConstrainedPlanner:
+    """One configuration applied to one policy: the same code path for evaluation and nodes."""
+
+    def __init__(self, policy: DiffusionPolicy, config: ConstraintConfig) -> None:
+        self.policy, self.config = policy, config
+        self.sampler = DenoisingSampler(policy, config.sampler, config.denoising_steps)
+        self._inflated: tuple[RestrictedArea, RestrictedArea] | None = None
+
+    def effective_area(self, area: RestrictedArea) -> RestrictedArea:
+        """The area the hooks see: inflated by the pusher radius if configured (cached)."""
+        if not self.config.inflate:
+            return area
+        if self._inflated is None or self._inflated[0] is not area:
+            self._inflated = (area, inflate_area(area, AGENT_RADIUS))
+        return self._inflated[1]
+
+    def hooks(self, area: RestrictedArea, pusher: torch.Tensor) -> list[SampleHook]:
+        c, first = self.config, self.policy.config.first_executed
+        hooks: list[SampleHook] = []
+        if c.resample:
+            hooks.append(Resampling(area))
+        if c.push > 0:
+            hooks.append(GradientPush(area, c.push))
+        if c.project:
+            hooks.append(FinalProjection(area, c.margin))
+        if c.path_repair:
+            hooks.append(PathRepair(area, pusher, first, c.margin))
+        return hooks
+
+    def plan(self, obs_history: torch.Tensor, area: RestrictedArea | None,
+             generator: torch.Generator | None = None) -> torch.Tensor:
+        """(B, n_obs_steps, obs_dim) -> (B, horizon, 2) workspace setpoints."""
+        if area is None:
+            return self.sampler.sample(obs_history, generator)
+        area = self.effective_area(area)
+        if self.config.from_scratch:
+            return self._from_scratch(obs_history, area, generator)
+        pusher = obs_history[:, -1, -2:]
+        return self.sampler.sample(obs_history, generator, self.hooks(area, pusher))
+
+    def _from_scratch(self, obs_history: torch.Tensor, area: RestrictedArea,
+                      generator: torch.Generator | None) -> torch.Tensor:
+        """The baseline the paper argues against: N whole chunks per episode in one batch; keep
+        the first whose executed waypoints all lie outside, else the one with fewest inside."""
+        n, (batch, *rest) = self.config.from_scratch, obs_history.shape
+        repeated = obs_history[:, None].expand(batch, n, *rest).reshape(batch * n, *rest)
+        chunks = self.sampler.sample(repeated, generator).reshape(batch, n, -1, 2)
+        first = self.policy.config.first_executed
+        executed = chunks[:, :, first: first + self.policy.config.n_action_steps]
+        rows = executed.reshape(batch, -1, 2)
+        inside = area.contains(rows).reshape(batch, n, -1).sum(dim=-1)
+        # Fewest violations; ties go to the earliest candidate ("the first that fits").
+        order = inside * n + torch.arange(n)
+        chosen = chunks[torch.arange(batch), order.argmin(dim=1)]
+        return area.project_out(chosen, self.config.margin) if self.config.project else chosen

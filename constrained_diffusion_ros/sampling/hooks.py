@@ -1,0 +1,103 @@
+"""Constraint hooks that act on the sample after every denoising update.
+
+The first two are the paper's (Dynamically Constraining Diffusion Policies During Inference);
+the rest go further: a final projection (a hard guarantee for every waypoint) and a repair of the
+straight path between consecutive executed setpoints. All work in workspace pixels, batched over
+episodes and waypoints, and consult only the `RestrictedArea` they are given.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from constrained_diffusion_ros.sampling.sampler import DenoisingStep
+from constrained_diffusion_ros.zones.geometry import RestrictedArea
+
+
+@dataclass
+class Resampling:
+    """Waypoints inside the area become `w z + (1 - w) x`, w falling linearly from 1 to 0.
+
+    z is drawn around the centre of the action space: standard normal in the normalised
+    space, mapped to pixels. Blending commutes with the affine map, so doing it in pixels is the
+    same as doing it in the normalised space.
+    """
+
+    area: RestrictedArea
+
+    def __call__(self, sample: Tensor, step: DenoisingStep) -> Tensor:
+        inside = self.area.contains(sample)
+        if not inside.any():
+            return sample
+        weight = 1.0 - step.progress
+        fresh = step.normalizer.unnormalize(torch.randn(sample.shape, generator=step.generator))
+        blended = weight * fresh + (1.0 - weight) * sample
+        return torch.where(inside[..., None], blended, sample)
+
+
+@dataclass
+class GradientPush:
+    """Waypoints inside the area move `step_size` pixels along the way out (nearest boundary)."""
+
+    area: RestrictedArea
+    step_size: float
+
+    def __call__(self, sample: Tensor, step: DenoisingStep) -> Tensor:
+        inside = self.area.contains(sample)
+        if not inside.any():
+            return sample
+        push = self.step_size * self.area.outward_direction(sample)
+        return torch.where(inside[..., None], sample + push, sample)
+
+
+@dataclass
+class FinalProjection:
+    """After the last update, every waypoint inside (or within `margin`) moves to the nearest
+    point `margin` outside: no commanded setpoint can lie in the area."""
+
+    area: RestrictedArea
+    margin: float = 1.0
+
+    def __call__(self, sample: Tensor, step: DenoisingStep) -> Tensor:
+        if step.index != step.total - 1:
+            return sample
+        return self.area.project_out(sample, self.margin)
+
+
+@dataclass
+class PathRepair:
+    """After the last update, the straight path pusher -> first executed waypoint -> ... must
+    not enter the area: a waypoint whose incoming segment enters is pulled back along it to
+    just before the entry (`margin` px), and the check runs again from there.
+
+    Segments that start inside (the pusher already in a zone) cannot be repaired this way and
+    are left to the projection and the next replanning.
+    """
+
+    area: RestrictedArea
+    start: Tensor  # (B, 2) pusher positions when the chunk is planned
+    first_index: int = 1
+    margin: float = 1.0
+
+    def __call__(self, sample: Tensor, step: DenoisingStep) -> Tensor:
+        if step.index != step.total - 1:
+            return sample
+        head, path = sample[:, : self.first_index], sample[:, self.first_index:]
+        for _ in range(path.shape[1]):
+            starts = torch.cat([self.start[:, None].to(path), path[:, :-1]], dim=1)
+            clear = self.area.segment_clear_fraction(starts, path)
+            entering = (clear < 1.0) & ~self.area.contains(starts)
+            if not entering.any():
+                break
+            first = entering.float().argmax(dim=1)  # first entering segment per episode
+            rows = torch.nonzero(entering.any(dim=1)).flatten()
+            cols = first[rows]
+            seg_start, seg_end = starts[rows, cols], path[rows, cols]
+            length = (seg_end - seg_start).norm(dim=-1).clamp_min(1e-9)
+            keep = (clear[rows, cols] - self.margin / length).clamp_min(0.0)
+            path = path.clone()
+            path[rows, cols] = seg_start + keep[:, None] * (seg_end - seg_start)
+        return torch.cat([head, path], dim=1)

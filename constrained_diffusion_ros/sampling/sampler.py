@@ -1,0 +1,75 @@
+"""The denoising loop, batched over episodes, with hooks that act after every update.
+
+Hooks see the sample in workspace pixels (the action space) and may change it; they never see
+the network. This is the single place where the constraint hooks meet the diffusion model, so
+training, evaluation and the ROS node all sample through it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Protocol
+
+import torch
+
+from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
+from constrained_diffusion_ros.policy.normalizer import MinMaxNormalizer
+from constrained_diffusion_ros.sampling.schedulers import SchedulerKind, make_scheduler
+
+
+@dataclass(frozen=True)
+class DenoisingStep:
+    """Where the loop is: hooks use it for step-dependent weights and for their randomness."""
+
+    index: int  # 0 for the first denoising update, total - 1 for the last
+    total: int
+    timestep: int
+    generator: torch.Generator | None
+    normalizer: MinMaxNormalizer  # action normaliser: workspace px <-> [-1, 1]
+
+    @property
+    def progress(self) -> float:
+        """0.0 after the first update, 1.0 after the last."""
+        return self.index / max(1, self.total - 1)
+
+
+class SampleHook(Protocol):
+    def __call__(self, sample: torch.Tensor, step: DenoisingStep) -> torch.Tensor:
+        """(B, horizon, 2) workspace-pixel sample in, the same shape out."""
+        ...
+
+
+class DenoisingSampler:
+    """Draws action chunks from a policy with DDPM (the reference) or DDIM (fewer steps)."""
+
+    def __init__(self, policy: DiffusionPolicy, kind: SchedulerKind = "ddpm",
+                 num_inference_steps: int | None = None) -> None:
+        self.policy = policy
+        self.kind = kind
+        self.scheduler = make_scheduler(policy.config, kind)
+        self.num_inference_steps = num_inference_steps or policy.config.num_train_timesteps
+        if not 1 <= self.num_inference_steps <= policy.config.num_train_timesteps:
+            raise ValueError(f"num_inference_steps must be in [1, "
+                             f"{policy.config.num_train_timesteps}], got {num_inference_steps}")
+        self.scheduler.set_timesteps(self.num_inference_steps)
+
+    @torch.no_grad()
+    def sample(self, obs_history: torch.Tensor, generator: torch.Generator | None = None,
+               hooks: Sequence[SampleHook] = ()) -> torch.Tensor:
+        """(B, n_obs_steps, obs_dim) observations -> (B, horizon, action_dim) workspace actions."""
+        config, normalizer = self.policy.config, self.policy.action_normalizer
+        cond = self.policy.condition(obs_history)
+        shape = (cond.shape[0], config.horizon, config.action_dim)
+        sample = torch.randn(shape, generator=generator)
+        timesteps = self.scheduler.timesteps
+        for index, timestep in enumerate(timesteps):
+            noise = self.policy.unet(sample, timestep, cond)
+            sample = self.scheduler.step(noise, timestep, sample, generator=generator).prev_sample
+            if hooks:
+                step = DenoisingStep(index, len(timesteps), int(timestep), generator, normalizer)
+                workspace = normalizer.unnormalize(sample)
+                for hook in hooks:
+                    workspace = hook(workspace, step)
+                sample = normalizer.normalize(workspace)
+        return normalizer.unnormalize(sample)

@@ -68,50 +68,77 @@ class RolloutLog:
         return (self.coverage > SUCCESS_THRESHOLD).any(axis=1)
 
 
+class ChunkExecutor:
+    """Receding-horizon execution for a batch of episodes: plan a chunk, execute
+    `n_action_steps` of its waypoints from `first_executed` on (the reference's convention),
+    replan when they run out or when `replan_check` says so. The evaluation and the policy node
+    both drive this, so they replan alike and consume the same random numbers."""
+
+    def __init__(self, planner: Planner, n_obs_steps: int = 2, first_executed: int = 1,
+                 n_action_steps: int = 8, replan_check: ReplanCheck | None = None) -> None:
+        self.planner, self.replan_check = planner, replan_check
+        self.n_obs_steps, self.first_executed = n_obs_steps, first_executed
+        self.n_action_steps = n_action_steps
+        self.history: ObservationHistory | None = None
+        self.planning_s, self.planned_chunks, self.planner_calls = 0.0, 0, 0
+        self.last_plan: tuple[int, np.ndarray, np.ndarray] | None = None
+
+    def reset(self) -> None:
+        self.history = None
+
+    def act(self, observations: np.ndarray, step: int) -> np.ndarray:
+        """(B, obs_dim) observations at control step `step` -> (B, 2) setpoints."""
+        if self.history is None:
+            batch = len(observations)
+            self.history = ObservationHistory(observations, self.n_obs_steps)
+            self.chunk = np.zeros((batch, self.n_action_steps, 2))
+            self.next_index = np.full(batch, self.n_action_steps)
+            self.plan_step = np.zeros(batch, dtype=int)
+        else:
+            self.history.push(observations)
+        due = self.next_index >= self.n_action_steps
+        if self.replan_check is not None and not due.all():
+            due |= self.replan_check(self.chunk, self.next_index, self.plan_step, step)
+        self.last_plan = None
+        if due.any():
+            rows = np.nonzero(due)[0]
+            started = time.perf_counter()
+            plan = self.planner(self.history.tensor(rows), step, rows).numpy()
+            self.planning_s += time.perf_counter() - started
+            self.planned_chunks += len(rows)
+            self.planner_calls += 1
+            self.last_plan = (step, rows, plan)
+            first = self.first_executed
+            self.chunk[rows] = plan[:, first: first + self.n_action_steps]
+            self.next_index[rows], self.plan_step[rows] = 0, step
+        action = self.chunk[np.arange(len(self.chunk)), self.next_index]
+        self.next_index += 1
+        return action
+
+
 def rollout(planner: Planner, seeds: Sequence[int], n_steps: int = 200, n_obs_steps: int = 2,
             first_executed: int = 1, n_action_steps: int = 8,
             replan_check: ReplanCheck | None = None, progress: bool = False,
             description: str = "rollout", keep_plans: bool = False) -> RolloutLog:
-    """Runs every seeded scene for `n_steps` control steps, all episodes in one batch.
-
-    Each episode executes `n_action_steps` waypoints of a chunk, from `first_executed` on (the
-    reference's convention), then replans; `replan_check` may cut a chunk short.
-    """
-    batch = len(seeds)
-    sims = PushTBatch(batch)
+    """Runs every seeded scene for `n_steps` control steps, all episodes in one batch."""
+    sims = PushTBatch(len(seeds))
     states = [sims.reset(list(seeds))]
-    history = ObservationHistory(sims.observations(), n_obs_steps)
-    chunk = np.zeros((batch, n_action_steps, 2))
-    next_index = np.full(batch, n_action_steps)
-    plan_step = np.zeros(batch, dtype=int)
+    executor = ChunkExecutor(planner, n_obs_steps, first_executed, n_action_steps, replan_check)
     log = RolloutLog(list(seeds), np.empty(0), np.empty(0), np.empty(0))
     commanded, coverages = [], []
-    every = np.arange(batch)
     with tqdm(total=n_steps, desc=description, unit="step", disable=not progress,
               leave=False) as bar:
         for step in range(n_steps):
-            due = next_index >= n_action_steps
-            if replan_check is not None and not due.all():
-                due |= replan_check(chunk, next_index, plan_step, step)
-            if due.any():
-                rows = np.nonzero(due)[0]
-                started = time.perf_counter()
-                plan = planner(history.tensor(rows), step, rows).numpy()
-                log.planning_s += time.perf_counter() - started
-                log.planned_chunks += len(rows)
-                log.planner_calls += 1
-                if keep_plans:
-                    log.plans.append((step, rows, plan))
-                chunk[rows] = plan[:, first_executed: first_executed + n_action_steps]
-                next_index[rows], plan_step[rows] = 0, step
-            action = chunk[every, next_index]
-            next_index += 1
+            action = executor.act(sims.observations(), step)
+            if keep_plans and executor.last_plan is not None:
+                log.plans.append(executor.last_plan)
             states.append(sims.step(action))
-            history.push(sims.observations())
             commanded.append(action)
             coverages.append(sims.coverage())
             bar.update(1)
     log.states = np.stack(states, axis=1)
     log.commanded = np.stack(commanded, axis=1)
     log.coverage = np.stack(coverages, axis=1)
+    log.planning_s = executor.planning_s
+    log.planned_chunks, log.planner_calls = executor.planned_chunks, executor.planner_calls
     return log

@@ -1,4 +1,4 @@
-"""Trains the PushT diffusion policy on the human demonstrations: `cdr-train --help`.
+"""Trains the PushT diffusion policy on the human demonstrations: `train_policy --help`.
 
 Resumable (a checkpoint every `--checkpoint-every` steps holds the weights, their EMA, the
 optimiser's moments and the random state, all as safetensors + JSON), reproducible from
@@ -160,7 +160,7 @@ def train(args: argparse.Namespace) -> dict:
     final_loss = sum(losses[-500:]) / len(losses[-500:])
     policy.unet.load_state_dict(ema.shadow)
     facts = {"training": {
-        "command": " ".join(["cdr-train", *sys.argv[1:]]), "steps": step,
+        "command": " ".join(["train_policy", *sys.argv[1:]]), "steps": step,
         "batch_size": args.batch_size, "lr": args.lr, "seed": args.seed,
         "final_loss_mean_last_500": final_loss, "wall_time_s_this_run": round(elapsed, 1),
         "parameters": n_params, "episodes": len(demos.episode_ends),
@@ -174,7 +174,7 @@ def train(args: argparse.Namespace) -> dict:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="cdr-train", description=__doc__.split("\n\n")[0],
+        prog="train_policy", description=__doc__.split("\n\n")[0],
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--dataset", required=True, help="path to pusht_cchi_v7_replay.zarr")
     parser.add_argument("--output", default="models/pusht_lowdim",
@@ -195,16 +195,16 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.steps <= 0 or args.batch_size <= 0 or args.checkpoint_every <= 0:
-        print("cdr-train: --steps, --batch-size and --checkpoint-every must be positive",
+        print("train_policy: --steps, --batch-size and --checkpoint-every must be positive",
               file=sys.stderr)
         return 2
     try:
         train(args)
     except ValueError as error:
-        print(f"cdr-train: {error}", file=sys.stderr)
+        print(f"train_policy: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("cdr-train: interrupted; rerun with --resume to continue from the last checkpoint",
+        print("train_policy: interrupted; rerun with --resume to continue from the last checkpoint",
               file=sys.stderr)
         return 130
     return 0

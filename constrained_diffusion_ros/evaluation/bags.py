@@ -1,0 +1,38 @@
+"""Trial bags read back with rosbags (no ROS needed): messages per topic, keyed by step."""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from pathlib import Path
+
+from rosbags.rosbag2 import Reader
+from rosbags.typesys import Stores, get_typestore
+
+from msg_schemas import TOPICS
+from sim_bridge import CONTROL_HZ
+
+TRIAL_TOPICS = {"pusher": "/pusht/pusher", "block": "/pusht/block_pose",
+                "setpoint": "/pusht/setpoint"}
+
+
+def read_messages(bag: str | Path) -> dict[str, list]:
+    """Every message of a bag, deserialised, in recording order, per topic."""
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    messages: dict[str, list] = defaultdict(list)
+    with Reader(Path(bag)) as reader:
+        for connection, _timestamp, raw in reader.messages():
+            messages[connection.topic].append(
+                typestore.deserialize_cdr(raw, connection.msgtype))
+    return dict(messages)
+
+
+def read_trial(bag: str | Path) -> dict[str, dict[int, object]]:
+    """Pusher, block pose and setpoint messages keyed by control step (from header stamps)."""
+    messages = read_messages(bag)
+    trial: dict[str, dict[int, object]] = {}
+    for kind, topic in TRIAL_TOPICS.items():
+        trial[kind] = {}
+        for msg in messages.get(TOPICS[topic].name, []):
+            stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+            trial[kind][round(stamp * CONTROL_HZ)] = msg
+    return trial

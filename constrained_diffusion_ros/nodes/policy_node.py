@@ -1,0 +1,282 @@
+"""policy_node: the constrained diffusion policy as a ROS 2 node.
+
+Answers every simulator observation (keypoints + pusher with the same stamp) with one setpoint
+from its current action chunk; replans when the chunk runs out, or at once when a zone arrives
+that the rest of the chunk would violate. Zones come in as id-keyed polygons and are validated;
+a malformed one is refused with a warning while the zones in force stay in force.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+import rclpy
+import torch
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from geometry_msgs.msg import (
+    Point,
+    PointStamped,
+    PolygonInstanceStamped,
+    PolygonStamped,
+    PoseStamped,
+)
+from nav_msgs.msg import Path as PathMsg
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import Marker, MarkerArray
+
+from constrained_diffusion_ros.evaluation.rollout import ChunkExecutor
+from constrained_diffusion_ros.paths import config_dir, default_model_dir
+from constrained_diffusion_ros.policy.weights import load_policy
+from constrained_diffusion_ros.sampling.constraints import (
+    ConstrainedPlanner,
+    load_configurations,
+)
+from constrained_diffusion_ros.zones.live import LiveZones
+from msg_schemas import FRAME_ID, SERVICES, TOPICS, qos_profile
+from sim_bridge import CONTROL_HZ
+
+
+def stamp_seconds(stamp) -> float:
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+class PolicyNode(Node):
+    def __init__(self) -> None:
+        super().__init__("policy_node")
+        self.declare_parameter("model", str(default_model_dir()))
+        self.declare_parameter("configuration", "r_g10_p_safe")
+        self.declare_parameter("configurations_file", str(config_dir() / "configurations.yaml"))
+        self.declare_parameter("noise_seed", 0)
+        self.declare_parameter("zone_lifetime", 0.0)  # s; 0: zones stay until removed
+        self.policy = load_policy(self.get_parameter("model").value)
+        self.configurations = load_configurations(
+            self.get_parameter("configurations_file").value)
+        self.zones = LiveZones()
+        self.generator = torch.Generator().manual_seed(self.get_parameter("noise_seed").value)
+        self._use_configuration(self.get_parameter("configuration").value)
+        self.add_on_set_parameters_callback(self._on_parameters)
+
+        self.setpoint_pub = self._publisher("/pusht/setpoint", PointStamped)
+        self.plan_pub = self._publisher("/pusht/plan", PathMsg)
+        self.marker_pub = self._publisher("/pusht/zone_markers", MarkerArray)
+        self.status_pub = self._publisher("/pusht/policy_status", DiagnosticStatus)
+        self._subscribe("/pusht/keypoints", PolygonStamped, self._on_keypoints)
+        self._subscribe("/pusht/pusher", PointStamped, self._on_pusher)
+        self._subscribe("/pusht/zones", PolygonInstanceStamped, self._on_zone)
+        self.create_service(Trigger, SERVICES["/pusht/clear_zones"].name, self._on_clear)
+        self.create_timer(0.2, self._expire_zones)
+
+        self.keypoints: dict[float, np.ndarray] = {}
+        self.pushers: dict[float, np.ndarray] = {}
+        self.last_stamp = -1.0
+        self.violations = self.plans = 0
+        self.zone_change_time: float | None = None
+        self.replan_latency_ms = float("nan")
+        self.get_logger().info(
+            f"policy from {self.get_parameter('model').value}, configuration "
+            f"{self.config.name!r} ({self.config.display})")
+
+    # -- wiring ---------------------------------------------------------------------------------
+
+    def _publisher(self, topic: str, msg_type):
+        return self.create_publisher(msg_type, TOPICS[topic].name, qos_profile(TOPICS[topic]))
+
+    def _subscribe(self, topic: str, msg_type, callback) -> None:
+        self.create_subscription(msg_type, TOPICS[topic].name, callback,
+                                 qos_profile(TOPICS[topic]))
+
+    def _use_configuration(self, name: str) -> None:
+        if name not in self.configurations:
+            raise ValueError(f"unknown configuration {name!r}; known: "
+                             f"{', '.join(self.configurations)}")
+        self.config = self.configurations[name]
+        self.planner = ConstrainedPlanner(self.policy, self.config)
+        c = self.policy.config
+        self.executor = ChunkExecutor(self._plan, c.n_obs_steps, c.first_executed,
+                                      c.n_action_steps, self._must_replan)
+        self.version_at_plan = -1
+
+    def _on_parameters(self, parameters) -> SetParametersResult:
+        for parameter in parameters:
+            if parameter.name == "configuration":
+                try:
+                    self._use_configuration(parameter.value)
+                except ValueError as error:
+                    return SetParametersResult(successful=False, reason=str(error))
+                self.get_logger().info(f"configuration now {parameter.value!r}")
+            elif parameter.name in ("model", "configurations_file", "noise_seed"):
+                return SetParametersResult(successful=False,
+                                           reason=f"{parameter.name} is read at start only")
+        return SetParametersResult(successful=True)
+
+    # -- planning ---------------------------------------------------------------------------------
+
+    def _area(self):
+        snapshot = self.zones.snapshot()
+        return None if snapshot.is_empty or not self.config.constrains else snapshot
+
+    def _plan(self, obs: torch.Tensor, step: int, rows: np.ndarray) -> torch.Tensor:
+        self.version_at_plan = self.zones.version
+        return self.planner.plan(obs, self._area(), self.generator)
+
+    def _must_replan(self, chunk, next_index, plan_step, step) -> np.ndarray:
+        """Zones changed since the plan and the rest of the chunk would enter them."""
+        area = self._area()
+        if area is None or self.zones.version == self.version_at_plan:
+            return np.zeros(len(chunk), dtype=bool)
+        remaining = torch.from_numpy(chunk[:, next_index[0]:])
+        inside = self.planner.effective_area(area).contains(remaining).numpy()
+        return inside.any(axis=1)
+
+    # -- observations -> setpoints ----------------------------------------------------------------
+
+    def _on_keypoints(self, msg: PolygonStamped) -> None:
+        if len(msg.polygon.points) != 9:
+            self.get_logger().warning(f"keypoints need 9 points, got {len(msg.polygon.points)}")
+            return
+        stamp = stamp_seconds(msg.header.stamp)
+        self.keypoints[stamp] = np.array([(p.x, p.y) for p in msg.polygon.points])
+        self._maybe_act(stamp)
+
+    def _on_pusher(self, msg: PointStamped) -> None:
+        stamp = stamp_seconds(msg.header.stamp)
+        self.pushers[stamp] = np.array([msg.point.x, msg.point.y])
+        self._maybe_act(stamp, msg.header)
+
+    def _maybe_act(self, stamp: float, header=None) -> None:
+        if stamp not in self.keypoints or stamp not in self.pushers:
+            return
+        if stamp == self.last_stamp:
+            return  # a repeated observation (the simulator re-sends until answered)
+        observation = np.concatenate([self.keypoints.pop(stamp).reshape(-1),
+                                      self.pushers.pop(stamp)])
+        for old in [s for s in self.keypoints if s < stamp]:
+            del self.keypoints[old]
+        for old in [s for s in self.pushers if s < stamp]:
+            del self.pushers[old]
+        if not np.all(np.isfinite(observation)):
+            self.get_logger().warning("observation with NaN/inf ignored")
+            return
+        if stamp < self.last_stamp or stamp == 0.0:  # the simulator was reset: a new episode
+            self.executor.reset()
+            self.generator.manual_seed(self.get_parameter("noise_seed").value)
+        self.last_stamp = stamp
+        step = round(stamp * CONTROL_HZ)
+        started = time.perf_counter()
+        setpoint = self.executor.act(observation[None].astype(np.float32), step)[0]
+        planning_ms = 1000 * (time.perf_counter() - started)
+        self._publish_setpoint(setpoint, stamp)
+        if self.executor.last_plan is not None:
+            self._after_plan()
+        self._publish_status(planning_ms)
+
+    def _publish_setpoint(self, setpoint: np.ndarray, stamp: float) -> None:
+        msg = PointStamped()
+        msg.header.stamp = rclpy.time.Time(seconds=stamp).to_msg()
+        msg.header.frame_id = FRAME_ID
+        msg.point = Point(x=float(setpoint[0]), y=float(setpoint[1]), z=0.0)
+        self.setpoint_pub.publish(msg)
+        area = self._area()
+        if area is not None and bool(area.contains(torch.tensor(setpoint[None]))[0]):
+            self.violations += 1
+
+    def _after_plan(self) -> None:
+        _step, _rows, plan = self.executor.last_plan
+        self.plans += 1
+        if self.zone_change_time is not None:
+            self.replan_latency_ms = 1000 * (time.monotonic() - self.zone_change_time)
+            self.zone_change_time = None
+        path = PathMsg()
+        path.header.stamp = self.get_clock().now().to_msg()
+        path.header.frame_id = FRAME_ID
+        for x, y in plan[0]:
+            pose = PoseStamped()
+            pose.header = path.header
+            pose.pose.position = Point(x=float(x), y=float(y), z=0.0)
+            pose.pose.orientation.w = 1.0
+            path.poses.append(pose)
+        self.plan_pub.publish(path)
+
+    def _publish_status(self, planning_ms: float) -> None:
+        values = {"configuration": self.config.name, "violations": self.violations,
+                  "plans": self.plans, "planning_ms": f"{planning_ms:.1f}",
+                  "replan_latency_ms": f"{self.replan_latency_ms:.1f}",
+                  "zones": len(self.zones)}
+        status = DiagnosticStatus(level=DiagnosticStatus.OK, name="policy_node",
+                                  message="running", hardware_id="pusht")
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        self.status_pub.publish(status)
+
+    # -- zones ------------------------------------------------------------------------------------
+
+    def _on_zone(self, msg: PolygonInstanceStamped) -> None:
+        zone_id = int(msg.polygon.id)
+        if msg.header.frame_id not in ("", FRAME_ID):
+            self.get_logger().warning(f"zone {zone_id} refused: frame {msg.header.frame_id!r} "
+                                      f"is not {FRAME_ID!r}")
+            return
+        vertices = [(p.x, p.y) for p in msg.polygon.polygon.points]
+        lifetime = self.get_parameter("zone_lifetime").value or None
+        before = self.zones.version
+        try:
+            self.zones.upsert(zone_id, vertices, time.monotonic(), lifetime)
+        except ValueError as error:
+            self.get_logger().warning(f"zone {zone_id} refused, zones in force kept: {error}")
+            return
+        if self.zones.version != before:
+            self.zone_change_time = time.monotonic()
+            self._publish_markers()
+
+    def _expire_zones(self) -> None:
+        if self.zones.expire(time.monotonic()):
+            self.zone_change_time = time.monotonic()
+            self._publish_markers()
+
+    def _on_clear(self, _request, response):
+        count = len(self.zones)
+        self.zones.clear()
+        self.zone_change_time = time.monotonic()
+        self._publish_markers()
+        response.success, response.message = True, f"cleared {count} zones"
+        return response
+
+    def _publish_markers(self) -> None:
+        markers = MarkerArray(markers=[Marker(action=Marker.DELETEALL)])
+        stamp = self.get_clock().now().to_msg()
+        for index, polygon in enumerate(self.zones.snapshot().polygons):
+            marker = Marker(type=Marker.LINE_STRIP, action=Marker.ADD, id=index, ns="zones")
+            marker.header.stamp, marker.header.frame_id = stamp, FRAME_ID
+            marker.scale.x = 2.0
+            marker.color.r, marker.color.a = 1.0, 1.0
+            marker.pose.orientation.w = 1.0
+            closed = [*polygon, polygon[0]]
+            marker.points = [Point(x=float(x), y=float(y), z=0.0) for x, y in closed]
+            markers.markers.append(marker)
+        self.marker_pub.publish(markers)
+
+
+def main(args: list[str] | None = None) -> int:
+    rclpy.init(args=args)
+    try:
+        node = PolicyNode()
+    except ValueError as error:  # bad model path, configuration name, ...
+        print(f"policy_node: {error}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv))

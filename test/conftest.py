@@ -1,11 +1,17 @@
-"""Shared fixtures: the real PushT demonstrations, read from a path (never copied)."""
+"""Shared fixtures: the real PushT demonstrations, read from a path (never copied), and tiny
+random policies for tests that need a network but not a trained one."""
 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pytest
+
+if TYPE_CHECKING:
+    from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_ZARR = REPO.parent / "shared" / "datasets" / "pusht_cchi_v7_replay.zarr"
@@ -19,3 +25,35 @@ def dataset_path() -> Path:
         pytest.fail(f"PushT dataset not found at {path}; set PUSHT_ZARR to the "
                     "pusht_cchi_v7_replay.zarr directory (expected at ../shared/datasets/).")
     return path
+
+
+@pytest.fixture(scope="session")
+def tiny_dims() -> tuple[int, ...]:
+    """U-Net widths of the tiny test policies: the shipped network class, fast on CPU."""
+    return (16, 32, 64)
+
+
+@pytest.fixture
+def make_tiny_policy(tiny_dims: tuple[int, ...]) -> Callable[..., DiffusionPolicy]:
+    """Builds untrained policies with identity-like normalisers ([0, 512] -> [-1, 1]).
+
+    The same seed gives the same weights; building reseeds torch's global generator.
+    """
+    import torch
+
+    from constrained_diffusion_ros.policy.config import PolicyConfig
+    from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
+
+    def build(seed: int = 0) -> DiffusionPolicy:
+        torch.manual_seed(seed)
+        stats = {"obs": {"min": [0.0] * 20, "max": [512.0] * 20},
+                 "action": {"min": [0.0, 0.0], "max": [512.0, 512.0]}}
+        return DiffusionPolicy(PolicyConfig(down_dims=tiny_dims, normalizer=stats)).eval()
+
+    return build
+
+
+@pytest.fixture
+def tiny_policy(make_tiny_policy: Callable[..., DiffusionPolicy]) -> DiffusionPolicy:
+    """A tiny untrained policy, seed 0."""
+    return make_tiny_policy()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -11,26 +12,16 @@ import torch
 
 from constrained_diffusion_ros.evaluation.rollout import rollout
 from constrained_diffusion_ros.paths import default_model_dir
-from constrained_diffusion_ros.policy.config import PolicyConfig
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.weights import load_policy, save_policy
 from constrained_diffusion_ros.sampling.sampler import DenoisingSampler
 from constrained_diffusion_ros.training import train
 from constrained_diffusion_ros.training.dataset import WindowSampler, load_demonstrations
 
-TINY_DIMS = (16, 32, 64)
-
 
 @pytest.fixture(scope="module")
 def demos(dataset_path: Path):
     return load_demonstrations(dataset_path)
-
-
-def tiny_policy(seed: int = 0) -> DiffusionPolicy:
-    torch.manual_seed(seed)
-    stats = {"obs": {"min": [0.0] * 20, "max": [512.0] * 20},
-             "action": {"min": [0.0, 0.0], "max": [512.0, 512.0]}}
-    return DiffusionPolicy(PolicyConfig(down_dims=TINY_DIMS, normalizer=stats)).eval()
 
 
 def test_windows_pad_episode_edges_like_the_reference(demos) -> None:
@@ -58,10 +49,11 @@ def test_missing_or_malformed_dataset_is_a_clear_error(tmp_path: Path) -> None:
         load_demonstrations(tmp_path / "empty.zarr")
 
 
-def test_tiny_training_lowers_the_loss_and_resumes(dataset_path: Path, tmp_path: Path) -> None:
+def test_tiny_training_lowers_the_loss_and_resumes(dataset_path: Path, tmp_path: Path,
+                                                    tiny_dims: tuple[int, ...]) -> None:
     out = tmp_path / "tiny"
     common = ["--dataset", str(dataset_path), "--output", str(out), "--batch-size", "64",
-              "--down-dims", *map(str, TINY_DIMS), "--warmup", "5", "--lr", "1e-3", "--quiet"]
+              "--down-dims", *map(str, tiny_dims), "--warmup", "5", "--lr", "1e-3", "--quiet"]
     assert train.main([*common, "--steps", "30", "--checkpoint-every", "15"]) == 0
     assert train.main([*common, "--steps", "60", "--checkpoint-every", "15", "--resume"]) == 0
     losses = json.loads((out / "losses.json").read_text())
@@ -70,12 +62,13 @@ def test_tiny_training_lowers_the_loss_and_resumes(dataset_path: Path, tmp_path:
     for name in ("model.safetensors", "config.json", "loss_curve.png"):
         assert (out / name).is_file()
     policy = load_policy(out)
-    assert policy.config.down_dims == TINY_DIMS
+    assert policy.config.down_dims == tiny_dims
     assert json.loads((out / "config.json").read_text())["training"]["steps"] == 60
 
 
-def test_save_then_load_gives_identical_outputs(tmp_path: Path) -> None:
-    policy = tiny_policy()
+def test_save_then_load_gives_identical_outputs(tmp_path: Path,
+                                                tiny_policy: DiffusionPolicy) -> None:
+    policy = tiny_policy
     save_policy(policy, tmp_path)
     loaded = load_policy(tmp_path)
     sample, steps, cond = torch.randn(3, 16, 2), torch.tensor([0, 50, 99]), torch.randn(3, 40)
@@ -83,8 +76,9 @@ def test_save_then_load_gives_identical_outputs(tmp_path: Path) -> None:
     assert loaded.config == policy.config
 
 
-def test_mismatched_or_corrupt_weights_are_refused(tmp_path: Path) -> None:
-    save_policy(tiny_policy(), tmp_path)
+def test_mismatched_or_corrupt_weights_are_refused(tmp_path: Path,
+                                                   tiny_policy: DiffusionPolicy) -> None:
+    save_policy(tiny_policy, tmp_path)
     config = json.loads((tmp_path / "config.json").read_text())
     config["policy"]["down_dims"] = [32, 64, 128]
     (tmp_path / "config.json").write_text(json.dumps(config))
@@ -97,8 +91,9 @@ def test_mismatched_or_corrupt_weights_are_refused(tmp_path: Path) -> None:
         load_policy(tmp_path / "missing")
 
 
-def test_sampling_with_a_fixed_seed_is_reproducible() -> None:
-    sampler = DenoisingSampler(tiny_policy(), "ddim", 5)
+def test_sampling_with_a_fixed_seed_is_reproducible(
+        make_tiny_policy: Callable[..., DiffusionPolicy]) -> None:
+    sampler = DenoisingSampler(make_tiny_policy(), "ddim", 5)
     obs = torch.rand(4, 2, 20) * 512
 
     def draw(seed: int) -> torch.Tensor:
@@ -106,7 +101,7 @@ def test_sampling_with_a_fixed_seed_is_reproducible() -> None:
 
     assert torch.equal(draw(1), draw(1))
     assert not torch.equal(draw(1), draw(2))
-    assert DenoisingSampler(tiny_policy(), "ddpm").num_inference_steps == 100
+    assert DenoisingSampler(make_tiny_policy(), "ddpm").num_inference_steps == 100
 
 
 @pytest.fixture(scope="module")

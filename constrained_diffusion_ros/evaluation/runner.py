@@ -32,7 +32,7 @@ class CellResult:
     success_rate: float
     r: float  # executed steps whose commanded position is inside a zone (the paper's r)
     r_body: float  # steps whose pusher disc overlaps a zone
-    path_crossings: float  # setpoint-to-setpoint segments that enter a zone
+    path_crossings: float  # setpoint-to-setpoint segments that enter a zone from outside
     starts_inside: int  # episodes whose pusher disc overlaps a zone at the start
     ms_per_chunk: float  # planning wall time per episode-chunk (amortised over the batch)
     ms_per_call: float  # wall time of one batched planning call
@@ -61,7 +61,8 @@ def cell_metrics(log: RolloutLog, rows: np.ndarray, scenario: Scenario) -> dict[
         inside[:, columns] = area.contains(cmd).numpy()
         after = torch.from_numpy(pusher[:, 1:][:, columns])
         body[:, columns] = (area.signed_distance(after) < AGENT_RADIUS).numpy()
-        crossing[:, columns] = area.crosses(torch.from_numpy(previous[:, columns]), cmd).numpy()
+        start = torch.from_numpy(previous[:, columns])
+        crossing[:, columns] = (area.crosses(start, cmd) & ~area.contains(start)).numpy()
     start = torch.from_numpy(pusher[:, 0])
     starts_inside = int((zones[0].signed_distance(start) < AGENT_RADIUS).sum())
     return {

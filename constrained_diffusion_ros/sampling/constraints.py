@@ -17,9 +17,9 @@ from constrained_diffusion_ros.sampling.hooks import (
     Resampling,
 )
 from constrained_diffusion_ros.sampling.sampler import DenoisingSampler, SampleHook
-from constrained_diffusion_ros.zones.episodes import inflate_area
+from constrained_diffusion_ros.zones.episodes import bounded_area, inflate_area
 from constrained_diffusion_ros.zones.geometry import RestrictedArea
-from sim_bridge import AGENT_RADIUS
+from sim_bridge import AGENT_RADIUS, WORKSPACE_SIZE
 
 
 @dataclass(frozen=True)
@@ -85,11 +85,12 @@ class ConstrainedPlanner:
         self._inflated: tuple[RestrictedArea, RestrictedArea] | None = None
 
     def effective_area(self, area: RestrictedArea) -> RestrictedArea:
-        """The area the hooks see: inflated by the pusher radius if configured (cached)."""
-        if not self.config.inflate:
-            return area
+        """The area the hooks see: the zones plus the outside of the workspace, inflated by the
+        pusher radius if configured (cached per area object)."""
         if self._inflated is None or self._inflated[0] is not area:
-            self._inflated = (area, inflate_area(area, AGENT_RADIUS))
+            bounded = bounded_area(area, WORKSPACE_SIZE)
+            radius = AGENT_RADIUS if self.config.inflate else 0.0
+            self._inflated = (area, inflate_area(bounded, radius))
         return self._inflated[1]
 
     def hooks(self, area: RestrictedArea, pusher: torch.Tensor) -> list[SampleHook]:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
+import shapely
 import torch
 from torch import Tensor
 
@@ -68,6 +69,22 @@ class EpisodeZones:
 
     def area_of(self, episode: int) -> RestrictedArea:
         return self.areas[int(self.assignment[episode])]
+
+
+def bounded_area(area: RestrictedArea, size: float) -> RestrictedArea:
+    """The area plus everything outside the [0, size]^2 workspace.
+
+    Without it a zone touching a wall (the paper's left bands) has its wall side as a
+    boundary, and "the nearest way out" would lead through the wall, off the workspace.
+    """
+    if isinstance(area, EpisodeZones):
+        return EpisodeZones([bounded_area(a, size) for a in area.areas], area.assignment)
+    if not isinstance(area, ZoneSet):
+        return area  # a user's own check: its author decides what lies outside
+    frame = shapely.box(-size, -size, 2 * size, 2 * size).difference(shapely.box(0, 0, size, size))
+    bounded = ZoneSet([*shapely.get_parts(area.geometry), frame])
+    bounded.compute_dtype = area.compute_dtype
+    return bounded
 
 
 def inflate_area(area: RestrictedArea, radius: float) -> RestrictedArea:

@@ -1,0 +1,140 @@
+"""The evaluation: scenarios as the design specifies them, the metrics, and the CLI end to end."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import shapely
+import torch
+
+from constrained_diffusion_ros.evaluation import evaluate
+from constrained_diffusion_ros.evaluation.rollout import RolloutLog
+from constrained_diffusion_ros.evaluation.runner import cell_metrics
+from constrained_diffusion_ros.evaluation.scenarios import Scenario, load_scenarios
+from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
+from constrained_diffusion_ros.policy.weights import save_policy
+from sim_bridge import WORKSPACE_SIZE
+
+W = WORKSPACE_SIZE
+
+
+@pytest.fixture(scope="module")
+def scenarios() -> dict[str, Scenario]:
+    return load_scenarios()
+
+
+# -- Scenarios -----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize(("name", "expected"), [
+    ("left_0.1", shapely.box(0, 0, 0.1 * W, W)),
+    ("left_0.5", shapely.box(0, 0, 0.5 * W, W)),
+    ("center_0.1", shapely.box(W / 2 - 0.05 * W, W / 2 - 0.05 * W,
+                               W / 2 + 0.05 * W, W / 2 + 0.05 * W)),
+    ("center_0.2", shapely.box(W / 2 - 0.1 * W, W / 2 - 0.1 * W,
+                               W / 2 + 0.1 * W, W / 2 + 0.1 * W)),
+])
+def test_paper_scenarios_have_the_papers_geometry(scenarios: dict[str, Scenario], name: str,
+                                                  expected: shapely.Polygon) -> None:
+    scenario = scenarios[name]
+    assert scenario.paper and not scenario.moving
+    zones = scenario.zones_at(0)
+    assert zones.geometry.equals(expected), (zones.polygons, expected)
+    assert zones.area == pytest.approx(expected.area)
+    assert scenario.zones_at(150) is zones  # static: one shared zone set
+
+
+def test_exactly_the_four_paper_scenarios_are_marked(scenarios: dict[str, Scenario]) -> None:
+    assert {n for n, s in scenarios.items() if s.paper} == {
+        "left_0.1", "left_0.5", "center_0.1", "center_0.2"}
+
+
+def test_the_moving_scenario_moves_between_steps(scenarios: dict[str, Scenario]) -> None:
+    hand = scenarios["moving_hand"]
+    assert hand.moving
+    first, later = hand.zones_at(0), hand.zones_at(100)
+    assert not first.geometry.equals(later.geometry)
+    assert first.area == pytest.approx(later.area)  # translated, not reshaped
+    shift = np.asarray(later.geometry.centroid.coords[0]) - first.geometry.centroid.coords[0]
+    np.testing.assert_allclose(shift, np.asarray(hand.motion_offset) * 100 / hand.motion_steps)
+    assert hand.zones_at(hand.motion_steps).geometry.equals(
+        hand.zones_at(hand.motion_steps + 50).geometry)  # then it stays
+
+
+# -- Metrics on a hand-made log ------------------------------------------------------------------
+
+def hand_made_log(commanded: np.ndarray, pusher: np.ndarray) -> RolloutLog:
+    """One episode: commanded (T, 2), pusher (T + 1, 2) before each step and after the last."""
+    steps = len(commanded)
+    states = np.zeros((1, steps + 1, 5))
+    states[0, :, :2] = pusher
+    coverage = np.linspace(0.0, 0.5, steps)[None]
+    return RolloutLog([100000], commanded[None].astype(float), states, coverage)
+
+
+def test_cell_metrics_count_steps_commanded_inside(scenarios: dict[str, Scenario]) -> None:
+    scenario = scenarios["center_0.2"]  # the square [204.8, 307.2]^2
+    commanded = np.full((10, 2), 100.0)
+    commanded[[2, 3, 7]] = [[256.0, 256.0], [210.0, 300.0], [300.0, 210.0]]
+    pusher = np.full((11, 2), 60.0)
+    pusher[[4, 5]] = [[256.0, 256.0], [195.0, 256.0]]  # after step 3, and 10 px off the edge
+    metrics = cell_metrics(hand_made_log(commanded, pusher), np.array([0]), scenario)
+    assert metrics["r"] == 3
+    assert metrics["r_body"] == 2  # the disc of radius 15 overlaps the zone after steps 3, 4
+    assert metrics["starts_inside"] == 0
+    assert metrics["s"] == pytest.approx(min(1.0, 0.5 / 0.95))
+
+
+def test_cell_metrics_follow_a_moving_zone(scenarios: dict[str, Scenario]) -> None:
+    hand = scenarios["moving_hand"]  # square of side 70 at (40, 200), moving +432 px in x
+    steps = 30
+    commanded = np.tile([40.0, 200.0], (steps, 1))  # where the hand starts
+    pusher = np.full((steps + 1, 2), 450.0)
+    metrics = cell_metrics(hand_made_log(commanded, pusher), np.array([0]), hand)
+    # The left edge 5 + 2.16 t passes x = 40 after step 16: inside at steps 0..16.
+    per_step = [bool(hand.zones_at(t).contains(torch.tensor([40.0, 200.0]))) for t in range(steps)]
+    assert sum(per_step) == 17
+    assert metrics["r"] == 17
+    assert metrics["r_body"] == 0
+
+
+# -- The command ---------------------------------------------------------------------------------
+
+def test_a_short_evaluation_runs_end_to_end(tmp_path: Path, tiny_policy: DiffusionPolicy,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    model, output = save_policy(tiny_policy, tmp_path / "model"), tmp_path / "report"
+    code = evaluate.main([
+        "--model", str(model), "--scenarios", "center_0.2", "l_shape",
+        "--configs", "none", "projection", "--episodes", "2", "--steps", "16",
+        "--output", str(output), "--figure", "center_0.2", "projection"])
+    assert code == 0
+    for name in ("table.md", "results.csv", "results.json", "s_vs_r.png", "frames.png"):
+        assert (output / name).is_file() and (output / name).stat().st_size > 0, name
+    cells = json.loads((output / "results.json").read_text())
+    assert sorted((c["scenario"], c["configuration"]) for c in cells) == [
+        ("center_0.2", "none"), ("center_0.2", "projection"),
+        ("l_shape", "none"), ("l_shape", "projection")]
+    assert all(c["episodes"] == 2 for c in cells)
+    assert all(c["r"] == 0 for c in cells if c["configuration"] == "projection")
+    # ... where the unconstrained policy does command setpoints inside (seeded: deterministic).
+    assert sum(c["r"] for c in cells if c["configuration"] == "none") > 0
+    assert all(0.0 <= c["s"] <= 1.0 for c in cells)
+    with (output / "results.csv").open() as handle:
+        assert len(list(csv.DictReader(handle))) == 4
+    table = (output / "table.md").read_text()
+    assert "0.2 center" in table and "concave L" in table and "Projection" in table
+    assert "0.2 center" in capsys.readouterr().out
+
+
+def test_an_unknown_scenario_is_a_clear_error(tmp_path: Path,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    code = evaluate.main(["--scenarios", "center_0.2", "nowhere", "--configs", "none",
+                          "--model", str(tmp_path / "no_model"), "--output", str(tmp_path / "o")])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "unknown scenarios ['nowhere']" in err and "center_0.2" in err  # names the known ones
+    assert "Traceback" not in err
+    assert not (tmp_path / "o").exists()

@@ -1,0 +1,182 @@
+"""recorder: writes every topic of the contract into a rosbag2 directory (MCAP storage).
+
+No rosbag2 wheels exist for a PyPI ROS install, so the bag is written with the `rosbags` library.
+Subscriptions are raw: messages arrive CDR-serialized and are stored as they came, with the
+contract's QoS as the offered profile and the message definitions of the ROS 2 Jazzy typestore,
+so `ros2 bag`, MCAP viewers and `rosbags.rosbag2.Reader` all read the bag.
+
+Metadata: metadata.yaml's `custom_data` (also in the MCAP file's `rosbag2` metadata record) gets
+  `message_counts`: JSON object, contract topic -> messages recorded;
+  `trial_metadata`: the JSON content of the `metadata_file` parameter, read at start and again at
+  close, so a trial can write its results there before it stops the recorder.
+Both values are JSON strings, as custom_data holds strings only.
+
+SIGINT or SIGTERM closes the bag with every message received so far; a bag directory that already
+exists is refused (rosbag2 bags are never appended to).
+
+Run: `recorder --ros-args -p output:=trials/run1 -p metadata_file:=trials/run1.json`.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import signal
+import sys
+import threading
+from functools import partial
+from pathlib import Path
+
+import rclpy
+from rclpy.duration import Duration
+from rclpy.exceptions import ParameterException
+from rclpy.logging import get_logger
+from rclpy.node import Node
+from rclpy.qos import QoSProfile
+from rclpy.signals import SignalHandlerOptions
+from rosbags.interfaces import (
+    Qos,
+    QosDurability,
+    QosHistory,
+    QosLiveliness,
+    QosReliability,
+    QosTime,
+)
+from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
+from rosbags.typesys import Stores, get_typestore
+
+from msg_schemas import TOPICS, Endpoint, qos_profile
+
+BAG_VERSION = 9  # rosbag2 metadata version written by ROS 2 Jazzy
+
+
+def message_class(type_name: str) -> type:
+    """'geometry_msgs/msg/PointStamped' -> the generated Python class."""
+    package, kind, name = type_name.split("/")
+    return getattr(importlib.import_module(f"{package}.{kind}"), name)
+
+
+def bag_qos(profile: QoSProfile) -> Qos:
+    """An rclpy QoS profile as rosbags stores it in the bag (the enums share rmw's names)."""
+    def bag_time(duration: Duration) -> QosTime:
+        sec, nsec = divmod(duration.nanoseconds, 1_000_000_000)
+        return QosTime(sec, nsec)
+
+    return Qos(
+        history=QosHistory[profile.history.name], depth=profile.depth,
+        reliability=QosReliability[profile.reliability.name],
+        durability=QosDurability[profile.durability.name],
+        deadline=bag_time(profile.deadline), lifespan=bag_time(profile.lifespan),
+        liveliness=QosLiveliness[profile.liveliness.name],
+        liveliness_lease_duration=bag_time(profile.liveliness_lease_duration),
+        avoid_ros_namespace_conventions=profile.avoid_ros_namespace_conventions)
+
+
+class Recorder(Node):
+    """Raw subscriptions to every contract topic, written as they arrive."""
+
+    def __init__(self) -> None:
+        super().__init__("recorder")
+        self.declare_parameter("output", "trials/bag")  # bag directory; must not exist yet
+        self.declare_parameter("metadata_file", "")  # JSON file stored in the bag; "" none
+        self.output = Path(self.get_parameter("output").value)
+        metadata_file = self.get_parameter("metadata_file").value
+        self.metadata_file = Path(metadata_file) if metadata_file else None
+        self.trial_metadata = self.read_metadata(warn_missing=False)
+
+        self.typestore = get_typestore(Stores.ROS2_JAZZY)
+        self.writer: Writer | None = Writer(self.output, version=BAG_VERSION,
+                                            storage_plugin=StoragePlugin.MCAP)
+        self.writer.open()  # raises WriterError if the directory appeared meanwhile
+        self.connections = {}  # topic -> rosbags Connection, added at its first message
+        self.counts = dict.fromkeys(TOPICS, 0)
+        self.publisher_counts = dict.fromkeys(TOPICS, 0)
+        self.subscriptions_by_topic = {
+            endpoint.name: self.create_subscription(
+                message_class(endpoint.type), endpoint.name, partial(self.on_message, endpoint),
+                qos_profile(endpoint), raw=True)
+            for endpoint in TOPICS.values()}
+        self.publisher_timer = self.create_timer(0.2, self.check_publishers)
+        self.get_logger().info(f"recording {len(TOPICS)} topics to {self.output}")
+
+    def read_metadata(self, warn_missing: bool = True) -> object | None:
+        if self.metadata_file is None:
+            return None
+        try:
+            return json.loads(self.metadata_file.read_text())
+        except FileNotFoundError:
+            if warn_missing:
+                self.get_logger().warning(f"metadata_file {self.metadata_file} not found")
+        except (OSError, ValueError) as error:
+            self.get_logger().warning(f"metadata_file {self.metadata_file} unreadable: {error}")
+        return None
+
+    def on_message(self, endpoint: Endpoint, data: bytes) -> None:
+        if self.writer is None:
+            return
+        connection = self.connections.get(endpoint.name)
+        if connection is None:
+            connection = self.writer.add_connection(
+                endpoint.name, endpoint.type, typestore=self.typestore,
+                offered_qos_profiles=[bag_qos(qos_profile(endpoint))])
+            self.connections[endpoint.name] = connection
+        self.writer.write(connection, self.get_clock().now().nanoseconds, data)
+        self.counts[endpoint.name] += 1
+
+    def check_publishers(self) -> None:
+        """Log each topic's matched publishers when the number changes: what is being recorded."""
+        for name, subscription in self.subscriptions_by_topic.items():
+            count = subscription.get_publisher_count()
+            if count != self.publisher_counts[name]:
+                self.publisher_counts[name] = count
+                self.get_logger().info(f"{name}: {count} publisher(s) matched")
+
+    def close(self) -> None:
+        """Store the metadata and finish the bag; safe to call twice."""
+        if self.writer is None:
+            return
+        trial = self.read_metadata()
+        if trial is None:
+            trial = self.trial_metadata
+        if trial is not None:
+            self.writer.set_custom_data("trial_metadata", json.dumps(trial))
+        self.writer.set_custom_data("message_counts", json.dumps(self.counts))
+        self.writer.close()
+        self.writer = None
+        counts = ", ".join(f"{name} {n}" for name, n in self.counts.items() if n)
+        self.get_logger().info(f"bag {self.output} closed: {sum(self.counts.values())} "
+                               f"messages ({counts or 'none'})")
+
+
+def main(args: list[str] | None = None) -> int:
+    # Own signal handlers instead of rclpy's: rclpy's would shut the context down first, and the
+    # bag is closed (and its summary logged) while ROS still runs.
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    try:
+        node = Recorder()
+    except (WriterError, OSError, ValueError, ParameterException) as error:
+        get_logger("recorder").error(f"cannot record: {error}")
+        rclpy.try_shutdown()
+        return 1
+    try:
+        while not stop.is_set() and rclpy.ok():
+            rclpy.spin_once(node, timeout_sec=0.1)
+        # Drain what DDS has already delivered, so nothing received before the signal is lost.
+        node.publisher_timer.cancel()
+        idle = 0
+        while idle < 2:
+            before = sum(node.counts.values())
+            rclpy.spin_once(node, timeout_sec=0.05)
+            idle = idle + 1 if sum(node.counts.values()) == before else 0
+    finally:
+        node.close()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

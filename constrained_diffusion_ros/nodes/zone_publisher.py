@@ -1,0 +1,165 @@
+"""zone_publisher: puts restricted zones on the zone topic, from a scenario or the command line.
+
+Each zone is one `PolygonInstanceStamped` keyed by its id; an empty polygon removes that id. The
+topic is latched (transient local), so a policy node that starts later still gets the zones; they
+are also re-sent at `rate_hz` (0: publish once and rely on the latching).
+
+A moving scenario is recomputed for the sim's current control step: with `follow_sim_time` the
+step is read from the stamp of `/pusht/pusher` (stamp * 10) and the zone is published whenever a
+new sim step is seen, so a lockstep trial sees the same zone positions however fast it runs;
+without it the step is the wall time since start * 10.
+
+Examples:
+  zone_publisher --ros-args -p scenario:=center_0.2
+  zone_publisher --ros-args -p polygon:="200,200;300,200;300,300" -p zone_id:=7
+  zone_publisher --ros-args -p remove_id:=7
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import rclpy
+import yaml
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Point32, PointStamped, PolygonInstanceStamped
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException
+from rclpy.logging import get_logger
+from rclpy.node import Node
+
+from constrained_diffusion_ros.evaluation.scenarios import Scenario, load_scenarios
+from constrained_diffusion_ros.zones import validate_polygon
+from msg_schemas import FRAME_ID, TOPICS, qos_profile
+from sim_bridge import CONTROL_HZ
+
+
+def parse_polygon(text: str, label: str = "parameter polygon") -> np.ndarray:
+    """'x1,y1;x2,y2;...' -> (V, 2) vertices, validated; ValueError names the fault."""
+    try:
+        vertices = [[float(c) for c in pair.split(",")] for pair in text.split(";")
+                    if pair.strip()]
+    except ValueError:
+        raise ValueError(f"{label}: expected 'x1,y1;x2,y2;...', got {text!r}") from None
+    if any(len(v) != 2 for v in vertices):
+        raise ValueError(f"{label}: every vertex needs exactly x,y, got {text!r}")
+    validate_polygon(vertices, label)
+    return np.asarray(vertices, dtype=float)
+
+
+def zone_message(zone_id: int, vertices: np.ndarray | None, stamp: Time) -> PolygonInstanceStamped:
+    """One id-keyed zone; `vertices` None gives the empty polygon that removes the id."""
+    msg = PolygonInstanceStamped()
+    msg.header.stamp, msg.header.frame_id = stamp, FRAME_ID
+    msg.polygon.id = int(zone_id)
+    if vertices is not None:
+        msg.polygon.polygon.points = [Point32(x=float(x), y=float(y), z=0.0) for x, y in vertices]
+    return msg
+
+
+class ZonePublisher(Node):
+    """Publishes a scenario's zones, one ad-hoc polygon and/or one removal, and keeps them up."""
+
+    def __init__(self) -> None:
+        super().__init__("zone_publisher")
+        self.declare_parameter("scenario", "")  # name in the scenarios file; "" none
+        self.declare_parameter("scenarios_file", "")  # "" the shipped config/scenarios.yaml
+        self.declare_parameter("first_id", 1)  # id of the scenario's first zone, then +1 each
+        self.declare_parameter("polygon", "")  # ad-hoc zone "x1,y1;x2,y2;..."
+        self.declare_parameter("zone_id", -1)  # its id; -1 the id after the scenario's zones
+        self.declare_parameter("remove_id", -1)  # >= 0: publish an empty polygon with this id
+        self.declare_parameter("rate_hz", 2.0)  # re-publish rate; 0 publish once (latched)
+        self.declare_parameter("follow_sim_time", True)  # moving zones follow the sim's step
+
+        def param(name: str):
+            return self.get_parameter(name).value
+
+        self.scenario: Scenario | None = None
+        if name := param("scenario"):
+            scenarios = load_scenarios(param("scenarios_file") or None)
+            if name not in scenarios:
+                raise ValueError(f"unknown scenario {name!r}; known: {', '.join(scenarios)}")
+            self.scenario = scenarios[name]
+        first_id = int(param("first_id"))
+        n_scenario = len(self.scenario.polygons) if self.scenario else 0
+        self.scenario_ids = list(range(first_id, first_id + n_scenario))
+        ids = list(self.scenario_ids)
+        self.adhoc: tuple[int, np.ndarray] | None = None
+        if text := param("polygon"):
+            zone_id = int(param("zone_id"))
+            self.adhoc = (zone_id if zone_id >= 0 else first_id + n_scenario, parse_polygon(text))
+            ids.append(self.adhoc[0])
+        remove_id = int(param("remove_id"))
+        self.remove_id = remove_id if remove_id >= 0 else None
+        if self.remove_id is not None:
+            ids.append(self.remove_id)
+        if not ids:
+            raise ValueError("nothing to publish: set scenario, polygon or remove_id")
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"zone ids collide: {ids} (set first_id, zone_id or remove_id)")
+
+        topic = TOPICS["/pusht/zones"]
+        self.pub = self.create_publisher(PolygonInstanceStamped, topic.name, qos_profile(topic))
+        self.follow = bool(param("follow_sim_time")) and self.scenario is not None \
+            and self.scenario.moving
+        self.step = 0
+        self.sim_time: Time | None = None  # stamp of the sim step last seen
+        self.start = self.get_clock().now()
+        if self.follow:
+            pusher = TOPICS["/pusht/pusher"]
+            self.create_subscription(PointStamped, pusher.name, self.on_pusher,
+                                     qos_profile(pusher))
+        rate_hz = float(param("rate_hz"))
+        if rate_hz > 0:
+            self.create_timer(1.0 / rate_hz, self.publish_zones)
+        self.publish_zones()
+        self.get_logger().info(f"publishing zone ids {ids}"
+                               + (f" of scenario {self.scenario.name!r}" if self.scenario else ""))
+
+    def publish_zones(self) -> None:
+        if self.follow:
+            stamp = self.sim_time or Time()
+        else:
+            now = self.get_clock().now()
+            stamp = now.to_msg()
+            if self.scenario is not None and self.scenario.moving:
+                self.step = int((now - self.start).nanoseconds * CONTROL_HZ // 1_000_000_000)
+        if self.scenario is not None:
+            for zone_id, vertices in zip(self.scenario_ids, self.scenario.polygons_at(self.step)):
+                self.pub.publish(zone_message(zone_id, vertices, stamp))
+        if self.adhoc is not None:
+            self.pub.publish(zone_message(*self.adhoc, stamp))
+        if self.remove_id is not None:
+            self.pub.publish(zone_message(self.remove_id, None, stamp))
+
+    def on_pusher(self, msg: PointStamped) -> None:
+        """A new sim step (stamp = step / 10 s; a reset goes back to 0): move the zones there."""
+        nanoseconds = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        step = round(nanoseconds * CONTROL_HZ / 1_000_000_000)
+        if self.sim_time is not None and step == self.step:
+            return  # the sim re-sent an observation it already published
+        self.step, self.sim_time = step, msg.header.stamp
+        self.publish_zones()
+
+
+def main(args: list[str] | None = None) -> int:
+    rclpy.init(args=args)
+    try:
+        node = ZonePublisher()
+    except (ValueError, OSError, yaml.YAMLError, ParameterException) as error:  # say which
+        get_logger("zone_publisher").error(str(error))
+        rclpy.try_shutdown()
+        return 1
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,222 @@
+"""ROS 2 node around the ROS-free PushT simulator: observations out, setpoints in.
+
+Two modes. `lockstep` (default): every setpoint received is exactly one control step, so a trial
+is deterministic however slow the policy is. `realtime`: a timer steps at `rate_hz` with the latest
+setpoint, as a real robot would, holding the last one.
+
+Every observation is stamped with simulated time (control step * 0.1 s) and published as four
+messages with the same stamp: block pose, score, keypoints, then the pusher, last, because the
+policy node acts on it. A reset (service `/pusht/reset`, to the `seed` parameter) returns the
+stamp to 0. With `autostart` false the sim publishes nothing and ignores setpoints until the
+first reset, so a trial can wait until every node is up before the scene starts.
+
+In lockstep the sim re-sends the current observation (same stamp) every 0.5 s while no setpoint
+answers it, so the first one is not lost to subscribers that are still being discovered;
+consumers must drop observations whose stamp they have already seen.
+
+Run: `sim_node --ros-args -p seed:=100001 -p mode:=realtime`.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+
+import numpy as np
+import rclpy
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Point32, PointStamped, PolygonStamped, PoseStamped
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException
+from rclpy.logging import get_logger
+from rclpy.node import Node
+from std_msgs.msg import Float64
+from std_srvs.srv import Trigger
+
+from msg_schemas import FRAME_ID, SERVICES, TOPICS, qos_profile
+from sim_bridge.pusht import CONTROL_HZ, COORD_LIMITS, PushTSim
+
+MODES = ("lockstep", "realtime")
+# Lockstep: while the sim waits for a setpoint it re-sends the current observation this often,
+# so a subscriber that appears after the initial publish (discovery takes seconds) still gets
+# it. The copies carry the same stamp; consumers drop observations whose stamp they have seen.
+REPUBLISH_PERIOD_S = 0.5
+
+
+def sim_stamp(step: int) -> Time:
+    """Simulated time of a control step, in exact integer nanoseconds."""
+    nanoseconds = step * (1_000_000_000 // CONTROL_HZ)
+    return Time(sec=nanoseconds // 1_000_000_000, nanosec=nanoseconds % 1_000_000_000)
+
+
+def setpoint_fault(msg: PointStamped) -> str | None:
+    """Why a setpoint cannot be executed, or None; checked where it arrives, before stepping."""
+    if msg.header.frame_id not in ("", FRAME_ID):
+        return f"frame_id {msg.header.frame_id!r} is not {FRAME_ID!r}"
+    x, y = msg.point.x, msg.point.y
+    if not (math.isfinite(x) and math.isfinite(y)):
+        return f"setpoint ({x}, {y}) is not finite"
+    lo, hi = COORD_LIMITS
+    if not (lo <= x <= hi and lo <= y <= hi):
+        return f"setpoint ({x:g}, {y:g}) lies outside [{lo:g}, {hi:g}]"
+    return None
+
+
+class SimNode(Node):
+    """Publishes the PushT scene and steps it on setpoints (lockstep) or on a timer (realtime)."""
+
+    def __init__(self) -> None:
+        super().__init__("sim_node")
+        self.declare_parameter("seed", 100000)
+        self.declare_parameter("mode", "lockstep")
+        self.declare_parameter("rate_hz", 10.0)
+        self.declare_parameter("max_steps", 0)
+        self.declare_parameter("autostart", True)
+        self.mode = self.get_parameter("mode").value
+        if self.mode not in MODES:
+            raise ValueError(f"parameter mode must be one of {MODES}, got {self.mode!r}")
+        rate_hz = float(self.get_parameter("rate_hz").value)
+        if not (math.isfinite(rate_hz) and rate_hz > 0):
+            raise ValueError(f"parameter rate_hz must be positive, got {rate_hz}")
+        self.max_steps = int(self.get_parameter("max_steps").value)
+
+        self.sim = PushTSim()
+        self.step_count = 0
+        self.target: tuple[float, float] | None = None  # realtime: the setpoint held
+        self.running = False  # false until the first reset when autostart is false
+        self._limit_logged = False
+        self._last_publish = 0.0
+
+        def publisher(msg_type, topic: str):
+            return self.create_publisher(msg_type, TOPICS[topic].name, qos_profile(TOPICS[topic]))
+
+        self.pose_pub = publisher(PoseStamped, "/pusht/block_pose")
+        self.score_pub = publisher(Float64, "/pusht/score")
+        self.keypoints_pub = publisher(PolygonStamped, "/pusht/keypoints")
+        self.pusher_pub = publisher(PointStamped, "/pusht/pusher")
+        setpoint = TOPICS["/pusht/setpoint"]
+        self.create_subscription(PointStamped, setpoint.name, self.on_setpoint,
+                                 qos_profile(setpoint))
+        self.create_service(Trigger, SERVICES["/pusht/reset"].name, self.on_reset)
+        if self.mode == "realtime":
+            self.create_timer(1.0 / rate_hz, self.on_tick)
+        else:
+            self.create_timer(REPUBLISH_PERIOD_S / 5, self.on_idle)
+
+        seed = self.get_parameter("seed").value
+        if self.get_parameter("autostart").value:
+            self.reset(seed)  # a bad seed raises: main reports it
+            self.get_logger().info(f"{self.mode} PushT sim running, seed {seed}")
+        else:
+            self.sim.reset(seed)  # checks the seed; publishes nothing yet
+            self.get_logger().info(f"{self.mode} PushT sim waiting for a reset")
+
+    # ---- simulation
+
+    def reset(self, seed: int) -> None:
+        self.sim.reset(seed)
+        self.running = True
+        self.step_count = 0
+        self.target = None
+        self._limit_logged = False
+        self.publish_observation()
+
+    def step(self, x: float, y: float) -> None:
+        if self.max_steps > 0 and self.step_count >= self.max_steps:
+            if not self._limit_logged:
+                self.get_logger().info(f"max_steps {self.max_steps} reached: no more stepping")
+                self._limit_logged = True
+            return
+        self.sim.step((x, y))
+        self.step_count += 1
+        self.publish_observation()
+
+    def publish_observation(self) -> None:
+        """Block pose, score, keypoints, then the pusher, all with one simulated-time stamp."""
+        stamp = sim_stamp(self.step_count)
+        bx, by, yaw = (float(v) for v in self.sim.block_pose)
+        pose = PoseStamped()
+        pose.header.stamp, pose.header.frame_id = stamp, FRAME_ID
+        pose.pose.position.x, pose.pose.position.y = bx, by
+        pose.pose.orientation.z, pose.pose.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
+        self.pose_pub.publish(pose)
+
+        self.score_pub.publish(Float64(data=self.sim.score()))
+
+        keypoints = PolygonStamped()
+        keypoints.header.stamp, keypoints.header.frame_id = stamp, FRAME_ID
+        keypoints.polygon.points = [Point32(x=float(x), y=float(y), z=0.0)
+                                    for x, y in np.asarray(self.sim.keypoints())]
+        self.keypoints_pub.publish(keypoints)
+
+        pusher = PointStamped()
+        pusher.header.stamp, pusher.header.frame_id = stamp, FRAME_ID
+        pusher.point.x, pusher.point.y = (float(v) for v in self.sim.state[:2])
+        self.pusher_pub.publish(pusher)
+        self._last_publish = time.monotonic()
+
+    # ---- callbacks
+
+    def on_setpoint(self, msg: PointStamped) -> None:
+        if not self.running:
+            self.get_logger().warning("ignoring setpoints until the first reset (autostart off)",
+                                      throttle_duration_sec=5.0)
+            return
+        fault = setpoint_fault(msg)
+        if fault is not None:
+            self.get_logger().warning(f"ignoring setpoint: {fault}")
+            return
+        if self.mode == "realtime":
+            self.target = (msg.point.x, msg.point.y)
+            return
+        try:
+            self.step(msg.point.x, msg.point.y)
+        except ValueError as error:  # the simulator's own check, should the two ever differ
+            self.get_logger().warning(f"ignoring setpoint: {error}")
+
+    def on_tick(self) -> None:
+        """Realtime: one control step toward the held setpoint (the pusher itself before any)."""
+        if not self.running:
+            return
+        if self.target is None:
+            self.target = tuple(float(v) for v in self.sim.state[:2])
+        self.step(*self.target)
+
+    def on_idle(self) -> None:
+        """Lockstep: re-send the observation while no setpoint has answered it (see above)."""
+        if self.running and time.monotonic() - self._last_publish >= REPUBLISH_PERIOD_S:
+            self.publish_observation()
+
+    def on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        seed = self.get_parameter("seed").value
+        try:
+            self.reset(seed)
+        except ValueError as error:
+            response.success, response.message = False, f"reset refused: {error}"
+            self.get_logger().error(response.message)
+            return response
+        response.success, response.message = True, f"reset to seed {seed}"
+        self.get_logger().info(response.message)
+        return response
+
+
+def main(args: list[str] | None = None) -> int:
+    rclpy.init(args=args)
+    try:
+        node = SimNode()
+    except (ValueError, ParameterException) as error:  # bad parameters: say which, no traceback
+        get_logger("sim_node").error(str(error))
+        rclpy.try_shutdown()
+        return 1
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+if __name__ == "__main__":
+    sys.exit(main())

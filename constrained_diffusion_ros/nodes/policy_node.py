@@ -65,9 +65,10 @@ class PolicyNode(Node):
         self.plan_pub = self._publisher("/pusht/plan", PathMsg)
         self.marker_pub = self._publisher("/pusht/zone_markers", MarkerArray)
         self.status_pub = self._publisher("/pusht/policy_status", DiagnosticStatus)
+        # Zones first: when a zone and an observation are ready together, the zone is taken first.
+        self._subscribe("/pusht/zones", PolygonInstanceStamped, self._on_zone)
         self._subscribe("/pusht/keypoints", PolygonStamped, self._on_keypoints)
         self._subscribe("/pusht/pusher", PointStamped, self._on_pusher)
-        self._subscribe("/pusht/zones", PolygonInstanceStamped, self._on_zone)
         self.create_service(Trigger, SERVICES["/pusht/clear_zones"].name, self._on_clear)
         self.create_timer(0.2, self._expire_zones)
 
@@ -97,7 +98,7 @@ class PolicyNode(Node):
         self.config = self.configurations[name]
         self.planner = ConstrainedPlanner(self.policy, self.config)
         c = self.policy.config
-        self.executor = ChunkExecutor(self._plan, c.n_obs_steps, c.first_executed,
+        self.chunks = ChunkExecutor(self._plan, c.n_obs_steps, c.first_executed,
                                       c.n_action_steps, self._must_replan)
         self.version_at_plan = -1
 
@@ -163,15 +164,15 @@ class PolicyNode(Node):
             self.get_logger().warning("observation with NaN/inf ignored")
             return
         if stamp < self.last_stamp or stamp == 0.0:  # the simulator was reset: a new episode
-            self.executor.reset()
+            self.chunks.reset()
             self.generator.manual_seed(self.get_parameter("noise_seed").value)
         self.last_stamp = stamp
         step = round(stamp * CONTROL_HZ)
         started = time.perf_counter()
-        setpoint = self.executor.act(observation[None].astype(np.float32), step)[0]
+        setpoint = self.chunks.act(observation[None].astype(np.float32), step)[0]
         planning_ms = 1000 * (time.perf_counter() - started)
         self._publish_setpoint(setpoint, stamp)
-        if self.executor.last_plan is not None:
+        if self.chunks.last_plan is not None:
             self._after_plan()
         self._publish_status(planning_ms)
 
@@ -186,7 +187,7 @@ class PolicyNode(Node):
             self.violations += 1
 
     def _after_plan(self) -> None:
-        _step, _rows, plan = self.executor.last_plan
+        _step, _rows, plan = self.chunks.last_plan
         self.plans += 1
         if self.zone_change_time is not None:
             self.replan_latency_ms = 1000 * (time.monotonic() - self.zone_change_time)

@@ -50,8 +50,10 @@ class LiveZones:
         polygon = validate_polygon(vertices, f"zone {zone_id!r}")
         expires_at = now + lifetime if lifetime else math.inf
         with self._lock:
+            previous = self._zones.get(zone_id)
             self._zones[zone_id] = _Zone(polygon, expires_at)
-            self._changed()
+            if previous is None or not previous.polygon.equals_exact(polygon, 0.0):
+                self._changed()  # a re-published, identical zone only refreshes its lifetime
 
     def remove(self, zone_id: ZoneId) -> bool:
         """Drop a zone; returns whether it existed."""

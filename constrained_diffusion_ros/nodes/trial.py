@@ -1,0 +1,276 @@
+"""trial: one recorded, constrained PushT trial, every node in its own process.
+
+Starts the recorder, the simulator (lockstep), the zone publisher and the policy node, as a
+launch file would; waits until they have discovered each other; resets the scene to the seed;
+lets the policy act for the requested number of control steps; stops every process cleanly;
+prints score and violations; and leaves, in the output directory, the rosbag2 (MCAP) bag with
+the trial's metadata, a strip of frames (PNG, like the paper's Fig. 1) and an animated GIF.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from constrained_diffusion_ros.evaluation.rollout import RolloutLog
+from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
+from constrained_diffusion_ros.paths import default_model_dir
+from msg_schemas import SERVICES, TOPICS
+from sim_bridge import CONTROL_HZ
+
+NODES = {  # process name -> python module
+    "recorder": "constrained_diffusion_ros.nodes.recorder",
+    "sim_node": "sim_bridge.sim_node",
+    "zone_publisher": "constrained_diffusion_ros.nodes.zone_publisher",
+    "policy_node": "constrained_diffusion_ros.nodes.policy_node",
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="trial", description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--scenario", default="center_0.2",
+                        help="zones from config/scenarios.yaml ('none' for no zones)")
+    parser.add_argument("--configuration", default="r_g10_p_safe",
+                        help="constraint configuration from config/configurations.yaml")
+    parser.add_argument("--seed", type=int, default=100000, help="PushT scene seed")
+    parser.add_argument("--steps", type=int, default=200, help="control (action) steps")
+    parser.add_argument("--model", default=str(default_model_dir()), help="policy directory")
+    parser.add_argument("--output", default=None,
+                        help="trial directory (default trials/<scenario>_<configuration>_<seed>);"
+                             " must not exist yet")
+    parser.add_argument("--timeout", type=float, default=600.0,
+                        help="seconds before the trial gives up")
+    return parser
+
+
+class Children:
+    """The trial's processes: started in order, stopped in reverse with SIGINT, then killed."""
+
+    def __init__(self, log_dir: Path) -> None:
+        self.log_dir = log_dir
+        self.processes: dict[str, subprocess.Popen] = {}
+
+    def start(self, name: str, parameters: dict) -> None:
+        args = [sys.executable, "-m", NODES[name], "--ros-args"]
+        for key, value in parameters.items():
+            args += ["-p", f"{key}:={value}"]
+        log = (self.log_dir / f"{name}.log").open("w")
+        self.processes[name] = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT,
+                                                env=os.environ.copy())
+
+    def failed(self) -> str | None:
+        for name, process in self.processes.items():
+            if process.poll() is not None:
+                return f"{name} exited with code {process.returncode} (see {name}.log)"
+        return None
+
+    def stop(self, name: str, timeout: float = 10.0) -> None:
+        process = self.processes.pop(name, None)
+        if process is None or process.poll() is not None:
+            return
+        process.send_signal(signal.SIGINT)
+        try:
+            process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+
+    def stop_all(self) -> None:
+        for name in reversed(list(self.processes)):
+            self.stop(name)
+
+
+def run_trial(args: argparse.Namespace) -> dict:
+    import rclpy
+    from geometry_msgs.msg import PointStamped, PoseStamped
+    from rclpy.node import Node
+    from std_msgs.msg import Float64
+    from std_srvs.srv import Trigger
+    from visualization_msgs.msg import MarkerArray
+
+    from constrained_diffusion_ros.zones.geometry import ZoneSet
+    from msg_schemas import qos_profile
+
+    scenarios = load_scenarios()
+    scenario = scenarios.get(args.scenario) if args.scenario != "none" else None
+    if args.scenario != "none" and scenario is None:
+        raise ValueError(f"unknown scenario {args.scenario!r}; known: {', '.join(scenarios)}")
+    output = Path(args.output or f"trials/{args.scenario}_{args.configuration}_{args.seed}")
+    if output.exists():
+        raise ValueError(f"{output} exists already; choose another --output (trials are never "
+                         "overwritten)")
+    output.mkdir(parents=True)
+    metadata_file = output / "trial.json"
+    metadata = {"scenario": args.scenario, "configuration": args.configuration,
+                "seed": args.seed, "steps": args.steps, "model": str(args.model),
+                "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    metadata_file.write_text(json.dumps(metadata, indent=2))
+
+    rclpy.init()
+    node = Node("trial")
+    received: dict[str, dict[int, object]] = {"pusher": {}, "block": {}, "setpoint": {},
+                                              "score": {}}
+
+    def keep(kind: str):
+        def callback(msg) -> None:
+            header = getattr(msg, "header", None)
+            if header is not None:
+                stamp = header.stamp.sec + header.stamp.nanosec * 1e-9
+                received[kind][round(stamp * CONTROL_HZ)] = msg
+        return callback
+
+    def last_step() -> int:
+        return max(received["pusher"], default=-1)
+
+    for topic, kind, msg_type in (("/pusht/pusher", "pusher", PointStamped),
+                                  ("/pusht/block_pose", "block", PoseStamped),
+                                  ("/pusht/setpoint", "setpoint", PointStamped)):
+        node.create_subscription(msg_type, TOPICS[topic].name, keep(kind),
+                                 qos_profile(TOPICS[topic]))
+    scores: list[float] = []
+    node.create_subscription(Float64, TOPICS["/pusht/score"].name,
+                             lambda msg: scores.append(msg.data),
+                             qos_profile(TOPICS["/pusht/score"]))
+    zones_in_force: list[int] = []
+    node.create_subscription(
+        MarkerArray, TOPICS["/pusht/zone_markers"].name,
+        lambda msg: zones_in_force.append(sum(m.action == m.ADD for m in msg.markers)),
+        qos_profile(TOPICS["/pusht/zone_markers"]))
+    reset = node.create_client(Trigger, SERVICES["/pusht/reset"].name)
+
+    children = Children(output)
+    deadline = time.monotonic() + args.timeout
+    try:
+        children.start("recorder", {"output": str(output / "bag"),
+                                    "metadata_file": str(metadata_file)})
+        children.start("sim_node", {"seed": args.seed, "mode": "lockstep",
+                                    "max_steps": args.steps, "autostart": False})
+        if scenario is not None:
+            children.start("zone_publisher", {"scenario": args.scenario})
+        children.start("policy_node", {"model": str(args.model),
+                                       "configuration": args.configuration})
+
+        def spin_until(condition, what: str) -> None:
+            while not condition():
+                failure = children.failed()
+                if failure:
+                    raise RuntimeError(failure)
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"timed out waiting for {what}")
+                rclpy.spin_once(node, timeout_sec=0.05)
+
+        def discovered() -> bool:
+            setpoint, pusher = TOPICS["/pusht/setpoint"].name, TOPICS["/pusht/pusher"].name
+            zones = TOPICS["/pusht/zones"].name
+            ready = (node.count_publishers(setpoint) >= 1 and node.count_subscribers(setpoint) >= 3
+                     and node.count_subscribers(pusher) >= 3 and reset.service_is_ready())
+            if scenario is not None:
+                ready &= node.count_publishers(zones) >= 1 and node.count_subscribers(zones) >= 2
+            return ready
+
+        spin_until(discovered, "the nodes to discover each other")
+        if scenario is not None:  # the policy echoes the zones in force as markers
+            expected = len(ZoneSet.from_polygons(scenario.polygons_at(0)).polygons)
+            spin_until(lambda: zones_in_force[-1] == expected if zones_in_force else False,
+                       "the policy to hold the scenario's zones")
+        future = reset.call_async(Trigger.Request())
+        spin_until(future.done, "the simulator's reset")
+        spin_until(lambda: last_step() >= args.steps and args.steps - 1 in received["setpoint"],
+                   f"{args.steps} control steps")
+        results = trial_results(received, scenario, args)
+        metadata["results"] = results
+        metadata_file.write_text(json.dumps(metadata, indent=2))
+    finally:
+        for name in ("policy_node", "zone_publisher", "sim_node"):
+            children.stop(name)
+        time.sleep(0.5)  # let the recorder take the last messages
+        children.stop_all()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    make_figures(output, scenario, args)
+    return metadata
+
+
+def trial_log(received: dict, seed: int, steps: int) -> RolloutLog:
+    """The recorded trial as a RolloutLog, so its metrics come from the evaluation's code."""
+    from sim_bridge import coverage
+
+    def quaternion_yaw(q) -> float:
+        return 2.0 * np.arctan2(q.z, q.w)
+
+    states = np.array([[received["pusher"][t].point.x, received["pusher"][t].point.y,
+                        received["block"][t].pose.position.x,
+                        received["block"][t].pose.position.y,
+                        quaternion_yaw(received["block"][t].pose.orientation)]
+                       for t in range(steps + 1)])
+    commanded = np.array([[received["setpoint"][t].point.x, received["setpoint"][t].point.y]
+                          for t in range(steps)])
+    cov = coverage(states[1:, 2:5])
+    return RolloutLog([seed], commanded[None], states[None], cov[None])
+
+
+def trial_results(received: dict, scenario, args: argparse.Namespace) -> dict:
+    from constrained_diffusion_ros.evaluation.runner import cell_metrics
+
+    log = trial_log(received, args.seed, args.steps)
+    if scenario is None:
+        return {"s": float(log.best_score[0]), "final_score": float(log.final_score[0])}
+    return cell_metrics(log, np.array([0]), scenario)
+
+
+def make_figures(output: Path, scenario, args: argparse.Namespace) -> None:
+    """PNG strip and GIF, drawn from the bag as recorded (not from memory)."""
+    import imageio.v3 as iio
+
+    from constrained_diffusion_ros.evaluation.bags import read_trial
+    from constrained_diffusion_ros.evaluation.report import plot_frames
+    from sim_bridge import render_scene
+
+    received = read_trial(output / "bag")
+    log = trial_log(received, args.seed, args.steps)
+    polygons_at = scenario.polygons_at if scenario is not None else (lambda _step: [])
+    from constrained_diffusion_ros.evaluation.scenarios import Scenario
+
+    shown = scenario or Scenario("none", "no zones", ())
+    plot_frames(log, 0, shown, output / "frames.png",
+                f"{args.configuration} on {shown.label}, seed {args.seed}")
+    frames = [render_scene(log.states[0, t], size=256, zones=polygons_at(t),
+                           setpoint=log.commanded[0, min(t, args.steps - 1)])
+              for t in range(0, args.steps + 1, 2)]
+    iio.imwrite(output / "trial.gif", np.stack(frames), duration=100, loop=0)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.steps < 1:
+        print("trial: --steps must be positive", file=sys.stderr)
+        return 2
+    try:
+        metadata = run_trial(args)
+    except (ValueError, RuntimeError) as error:
+        print(f"trial: {error}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("trial: interrupted; processes stopped, bag closed", file=sys.stderr)
+        return 130
+    results = metadata["results"]
+    output = Path(args.output or f"trials/{args.scenario}_{args.configuration}_{args.seed}")
+    print(f"trial {args.scenario} / {args.configuration} / seed {args.seed}: best score "
+          f"{results['s']:.3f}, final score {results['final_score']:.3f}, setpoints inside "
+          f"zones r = {results.get('r', 0):.0f}, body overlaps r_body = "
+          f"{results.get('r_body', 0):.0f}")
+    print(f"wrote {output}/bag (rosbag2, MCAP), {output}/frames.png, {output}/trial.gif")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

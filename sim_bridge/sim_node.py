@@ -24,16 +24,13 @@ import sys
 import time
 
 import numpy as np
-import rclpy
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point32, PointStamped, PolygonStamped, PoseStamped
-from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
-from rclpy.logging import get_logger
 from rclpy.node import Node
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
+from constrained_diffusion_ros.nodes.spin import spin_node
 from msg_schemas import FRAME_ID, SERVICES, TOPICS, qos_profile
 from sim_bridge.pusht import CONTROL_HZ, COORD_LIMITS, PushTSim
 
@@ -202,21 +199,8 @@ class SimNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args)
-    try:
-        node = SimNode()
-    except (ValueError, ParameterException) as error:  # bad parameters: say which, no traceback
-        get_logger("sim_node").error(str(error))
-        rclpy.try_shutdown()
-        return 1
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return spin_node(SimNode, "sim_node", args)
+
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -24,12 +24,12 @@ from geometry_msgs.msg import (
 )
 from nav_msgs.msg import Path as PathMsg
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
 from constrained_diffusion_ros.evaluation.rollout import ChunkExecutor
+from constrained_diffusion_ros.nodes.spin import spin_node
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.sampling.constraints import (
@@ -262,22 +262,8 @@ class PolicyNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args)
-    try:
-        node = PolicyNode()
-    except ValueError as error:  # bad model path, configuration name, ...
-        print(f"policy_node: {error}", file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return spin_node(PolicyNode, "policy_node", args)
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv))
+    sys.exit(main())

@@ -20,16 +20,13 @@ from __future__ import annotations
 import sys
 
 import numpy as np
-import rclpy
 import yaml
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point32, PointStamped, PolygonInstanceStamped
-from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
-from rclpy.logging import get_logger
 from rclpy.node import Node
 
 from constrained_diffusion_ros.evaluation.scenarios import Scenario, load_scenarios
+from constrained_diffusion_ros.nodes.spin import spin_node
 from constrained_diffusion_ros.zones import validate_polygon
 from msg_schemas import FRAME_ID, TOPICS, qos_profile
 from sim_bridge import CONTROL_HZ
@@ -144,21 +141,7 @@ class ZonePublisher(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args)
-    try:
-        node = ZonePublisher()
-    except (ValueError, OSError, yaml.YAMLError, ParameterException) as error:  # say which
-        get_logger("zone_publisher").error(str(error))
-        rclpy.try_shutdown()
-        return 1
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return spin_node(ZonePublisher, "zone_publisher", args, (OSError, yaml.YAMLError))
 
 
 if __name__ == "__main__":

@@ -1,0 +1,32 @@
+"""The shared `main()` body of the package's nodes: init, build, spin, shut down quietly."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import rclpy
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException
+from rclpy.logging import get_logger
+from rclpy.node import Node
+
+
+def spin_node(factory: Callable[[], Node], name: str, args: list[str] | None = None,
+              startup_errors: tuple[type[BaseException], ...] = ()) -> int:
+    """Runs a node until Ctrl-C or shutdown. A bad parameter or file at start-up is logged in
+    one line (exit code 1), never a traceback."""
+    rclpy.init(args=args)
+    try:
+        node = factory()
+    except (ValueError, ParameterException, *startup_errors) as error:
+        get_logger(name).error(str(error))
+        rclpy.try_shutdown()
+        return 1
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

@@ -19,7 +19,8 @@ $(STAMP): requirements.txt requirements-test.txt setup.py package.xml
 setup: $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/trial --output trials/demo
+	$(BIN)/trial --scenario center_0.2 --configuration r_g10_p_safe --seed 100000 \
+		--output trials/demo-$$(date +%Y%m%d-%H%M%S)
 
 test: $(STAMP)
 	$(BIN)/ruff check .

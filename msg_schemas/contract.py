@@ -23,8 +23,13 @@ class Endpoint:
     units: str
     description: str
 
+    @property
+    def key(self) -> str:
+        """How code refers to it: `TOPICS["setpoint"].name` is "/pusht/setpoint"."""
+        return self.name.rsplit("/", 1)[-1]
 
-TOPICS: dict[str, Endpoint] = {e.name: e for e in (
+
+TOPICS: dict[str, Endpoint] = {e.key: e for e in (
     Endpoint("/pusht/pusher", "geometry_msgs/msg/PointStamped", "sensor", "sim_node",
              ("policy_node", "recorder"), "px, frame workspace; stamp = simulated time",
              "Pusher position after each control step"),
@@ -50,7 +55,7 @@ TOPICS: dict[str, Endpoint] = {e.name: e for e in (
              "Violations, replans, planning latency (ms), zones in force"),
 )}
 
-SERVICES: dict[str, Endpoint] = {e.name: e for e in (
+SERVICES: dict[str, Endpoint] = {e.key: e for e in (
     Endpoint("/pusht/clear_zones", "std_srvs/srv/Trigger", "services", "policy_node", (), "",
              "Remove every zone in force"),
     Endpoint("/pusht/reset", "std_srvs/srv/Trigger", "services", "sim_node", (), "",

@@ -88,14 +88,14 @@ class SimNode(Node):
         def publisher(msg_type, topic: str):
             return self.create_publisher(msg_type, TOPICS[topic].name, qos_profile(TOPICS[topic]))
 
-        self.pose_pub = publisher(PoseStamped, "/pusht/block_pose")
-        self.score_pub = publisher(Float64, "/pusht/score")
-        self.keypoints_pub = publisher(PolygonStamped, "/pusht/keypoints")
-        self.pusher_pub = publisher(PointStamped, "/pusht/pusher")
-        setpoint = TOPICS["/pusht/setpoint"]
+        self.pose_pub = publisher(PoseStamped, "block_pose")
+        self.score_pub = publisher(Float64, "score")
+        self.keypoints_pub = publisher(PolygonStamped, "keypoints")
+        self.pusher_pub = publisher(PointStamped, "pusher")
+        setpoint = TOPICS["setpoint"]
         self.create_subscription(PointStamped, setpoint.name, self.on_setpoint,
                                  qos_profile(setpoint))
-        self.create_service(Trigger, SERVICES["/pusht/reset"].name, self.on_reset)
+        self.create_service(Trigger, SERVICES["reset"].name, self.on_reset)
         if self.mode == "realtime":
             self.create_timer(1.0 / rate_hz, self.on_tick)
         else:

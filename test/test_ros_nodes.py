@@ -158,12 +158,12 @@ class SimLink:
 
     def __init__(self, ros: Ros, process: subprocess.Popen, log: Path) -> None:
         self.ros, self.process, self.log = ros, process, log
-        self.pushers = ros.inbox("/pusht/pusher", PointStamped)
-        self.keypoints = ros.inbox("/pusht/keypoints", PolygonStamped)
-        self.poses = ros.inbox("/pusht/block_pose", PoseStamped)
-        self.scores = ros.inbox("/pusht/score", Float64)
-        self.setpoint_pub = ros.publisher("/pusht/setpoint", PointStamped)
-        self.reset_client = ros.node.create_client(Trigger, SERVICES["/pusht/reset"].name)
+        self.pushers = ros.inbox("pusher", PointStamped)
+        self.keypoints = ros.inbox("keypoints", PolygonStamped)
+        self.poses = ros.inbox("block_pose", PoseStamped)
+        self.scores = ros.inbox("score", Float64)
+        self.setpoint_pub = ros.publisher("setpoint", PointStamped)
+        self.reset_client = ros.node.create_client(Trigger, SERVICES["reset"].name)
         self.params = AsyncParameterClient(ros.node, "sim_node")
 
     def stamps(self) -> list[int]:
@@ -300,7 +300,7 @@ def test_sim_without_autostart_waits_for_reset(ros, processes):
                              seed=SEED + 3, autostart=False)
     received: list[PointStamped] = []
     ros.node.create_subscription(PointStamped, "/b/pusher", received.append,
-                                 qos_profile(TOPICS["/pusht/pusher"]))
+                                 qos_profile(TOPICS["pusher"]))
     client = ros.node.create_client(Trigger, "/b/reset")
     assert ros.spin_until(client.service_is_ready), log.read_text()
     ros.spin_for(0.8)  # longer than the lockstep re-send period: still nothing
@@ -323,10 +323,10 @@ def test_zone_publisher_latched_scenario_and_moving_zone(ros, sim, processes):
                     scenario="moving_hand", first_id=20, rate_hz=0.0, follow_sim_time=True)
     bad, bad_log = processes.start("constrained_diffusion_ros.nodes.zone_publisher", "zones_bad",
                                    polygon="0,0;10,10;20,20")
-    topic = TOPICS["/pusht/zones"].name
+    topic = TOPICS["zones"].name
     # Both publishers exist (and have published: they do so on creation) before we subscribe.
     assert ros.spin_until(lambda: ros.node.count_publishers(topic) >= 2)
-    zones = ros.inbox("/pusht/zones", PolygonInstanceStamped)
+    zones = ros.inbox("zones", PolygonInstanceStamped)
     assert ros.spin_until(lambda: {5, 6} <= {m.polygon.id for m in zones})
     static = {m.polygon.id: m for m in zones if m.polygon.id in (5, 6)}
     for zone_id, polygon in zip((5, 6), scenarios["two_zones"].polygons):
@@ -377,13 +377,13 @@ def test_recorder_writes_every_topic_and_metadata(ros, sim, processes, tmp_path)
     metadata_file.write_text(json.dumps({"scenario": "two_zones", "result": None}))
     recorder, log = processes.start("constrained_diffusion_ros.nodes.recorder", "recorder",
                                     output=bag, metadata_file=metadata_file)
-    published = {"/pusht/plan": PathMsg, "/pusht/policy_status": DiagnosticStatus,
-                 "/pusht/zone_markers": MarkerArray, "/pusht/zones": PolygonInstanceStamped}
+    published = {"plan": PathMsg, "policy_status": DiagnosticStatus,
+                 "zone_markers": MarkerArray, "zones": PolygonInstanceStamped}
     publishers = {topic: ros.publisher(topic, msg_type) for topic, msg_type in published.items()}
 
     def recorder_matched_all() -> bool:
         text = log.read_text()
-        return all(f"{name}: 1 publisher(s) matched" in text for name in TOPICS) \
+        return all(f"{e.name}: 1 publisher(s) matched" in text for e in TOPICS.values()) \
             and sim.setpoint_pub.get_subscription_count() >= 2 \
             and all(p.get_subscription_count() >= 1 for p in publishers.values())
 
@@ -394,12 +394,12 @@ def test_recorder_writes_every_topic_and_metadata(ros, sim, processes, tmp_path)
         sim.send(150.0 + 10 * i, 300.0)
     new = sim.wait_new_stamps(before, 3)
     for i in range(2):
-        publishers["/pusht/plan"].publish(PathMsg())
-        publishers["/pusht/policy_status"].publish(DiagnosticStatus(name="policy", message=str(i)))
-        publishers["/pusht/zone_markers"].publish(MarkerArray())
+        publishers["plan"].publish(PathMsg())
+        publishers["policy_status"].publish(DiagnosticStatus(name="policy", message=str(i)))
+        publishers["zone_markers"].publish(MarkerArray())
         zone = PolygonInstanceStamped()
         zone.polygon.id = 40 + i
-        publishers["/pusht/zones"].publish(zone)
+        publishers["zones"].publish(zone)
     ros.spin_for(0.2)  # let the last messages reach the recorder; it drains its queue on stop
     metadata_file.write_text(json.dumps({"scenario": "two_zones", "result": {"score": 0.5}}))
     recorder.send_signal(signal.SIGINT)
@@ -409,15 +409,16 @@ def test_recorder_writes_every_topic_and_metadata(ros, sim, processes, tmp_path)
     assert (bag / "bag.mcap").is_file()
     assert counts["/pusht/setpoint"] == 3
     for topic in published:
-        assert counts.get(topic) == 2, topic
+        assert counts.get(TOPICS[topic].name) == 2, topic
     for topic in ("/pusht/pusher", "/pusht/keypoints", "/pusht/block_pose"):
         recorded = [stamp_ns(m.header.stamp) for m in messages[topic]]
         assert set(new) <= set(recorded), topic
         assert all(recorded.count(s) == 1 for s in new[:-1]), topic  # no step recorded twice
     assert counts["/pusht/score"] >= 3
     assert sorted(m.polygon.id for m in messages["/pusht/zones"]) == [40, 41]
+    by_name = {endpoint.name: endpoint for endpoint in TOPICS.values()}
     for topic, connection in connections.items():
-        assert connection.msgtype == TOPICS[topic].type
+        assert connection.msgtype == by_name[topic].type
         assert connection.digest.startswith("RIHS01_")
     assert connections["/pusht/zones"].ext.offered_qos_profiles[0].durability.name == \
         "TRANSIENT_LOCAL"
@@ -428,7 +429,7 @@ def test_recorder_writes_every_topic_and_metadata(ros, sim, processes, tmp_path)
     assert json.loads(custom["trial_metadata"]) == {"scenario": "two_zones",
                                                    "result": {"score": 0.5}}
     recorded_counts = json.loads(custom["message_counts"])
-    assert set(recorded_counts) == set(TOPICS)
+    assert set(recorded_counts) == set(by_name)
     assert {t: n for t, n in recorded_counts.items() if n} == counts
     assert "closed" in log.read_text() and "Traceback" not in log.read_text()
 

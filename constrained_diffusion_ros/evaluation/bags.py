@@ -11,8 +11,8 @@ from rosbags.typesys import Stores, get_typestore
 from msg_schemas import TOPICS
 from sim_bridge import CONTROL_HZ
 
-TRIAL_TOPICS = {"pusher": "/pusht/pusher", "block": "/pusht/block_pose",
-                "setpoint": "/pusht/setpoint"}
+TRIAL_TOPICS = {"pusher": "pusher", "block": "block_pose",
+                "setpoint": "setpoint"}
 
 
 def read_messages(bag: str | Path) -> dict[str, list]:

@@ -61,15 +61,15 @@ class PolicyNode(Node):
         self._use_configuration(self.get_parameter("configuration").value)
         self.add_on_set_parameters_callback(self._on_parameters)
 
-        self.setpoint_pub = self._publisher("/pusht/setpoint", PointStamped)
-        self.plan_pub = self._publisher("/pusht/plan", PathMsg)
-        self.marker_pub = self._publisher("/pusht/zone_markers", MarkerArray)
-        self.status_pub = self._publisher("/pusht/policy_status", DiagnosticStatus)
+        self.setpoint_pub = self._publisher("setpoint", PointStamped)
+        self.plan_pub = self._publisher("plan", PathMsg)
+        self.marker_pub = self._publisher("zone_markers", MarkerArray)
+        self.status_pub = self._publisher("policy_status", DiagnosticStatus)
         # Zones first: when a zone and an observation are ready together, the zone is taken first.
-        self._subscribe("/pusht/zones", PolygonInstanceStamped, self._on_zone)
-        self._subscribe("/pusht/keypoints", PolygonStamped, self._on_keypoints)
-        self._subscribe("/pusht/pusher", PointStamped, self._on_pusher)
-        self.create_service(Trigger, SERVICES["/pusht/clear_zones"].name, self._on_clear)
+        self._subscribe("zones", PolygonInstanceStamped, self._on_zone)
+        self._subscribe("keypoints", PolygonStamped, self._on_keypoints)
+        self._subscribe("pusher", PointStamped, self._on_pusher)
+        self.create_service(Trigger, SERVICES["clear_zones"].name, self._on_clear)
         self.create_timer(0.2, self._expire_zones)
 
         self.keypoints: dict[float, np.ndarray] = {}

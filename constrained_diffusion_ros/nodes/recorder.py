@@ -89,8 +89,9 @@ class Recorder(Node):
                                             storage_plugin=StoragePlugin.MCAP)
         self.writer.open()  # raises WriterError if the directory appeared meanwhile
         self.connections = {}  # topic -> rosbags Connection, added at its first message
-        self.counts = dict.fromkeys(TOPICS, 0)
-        self.publisher_counts = dict.fromkeys(TOPICS, 0)
+        names = [endpoint.name for endpoint in TOPICS.values()]
+        self.counts = dict.fromkeys(names, 0)
+        self.publisher_counts = dict.fromkeys(names, 0)
         self.subscriptions_by_topic = {
             endpoint.name: self.create_subscription(
                 message_class(endpoint.type), endpoint.name, partial(self.on_message, endpoint),

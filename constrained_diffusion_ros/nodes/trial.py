@@ -131,21 +131,21 @@ def run_trial(args: argparse.Namespace) -> dict:
     def last_step() -> int:
         return max(received["pusher"], default=-1)
 
-    for topic, kind, msg_type in (("/pusht/pusher", "pusher", PointStamped),
-                                  ("/pusht/block_pose", "block", PoseStamped),
-                                  ("/pusht/setpoint", "setpoint", PointStamped)):
+    for topic, kind, msg_type in (("pusher", "pusher", PointStamped),
+                                  ("block_pose", "block", PoseStamped),
+                                  ("setpoint", "setpoint", PointStamped)):
         node.create_subscription(msg_type, TOPICS[topic].name, keep(kind),
                                  qos_profile(TOPICS[topic]))
     scores: list[float] = []
-    node.create_subscription(Float64, TOPICS["/pusht/score"].name,
+    node.create_subscription(Float64, TOPICS["score"].name,
                              lambda msg: scores.append(msg.data),
-                             qos_profile(TOPICS["/pusht/score"]))
+                             qos_profile(TOPICS["score"]))
     zones_in_force: list[int] = []
     node.create_subscription(
-        MarkerArray, TOPICS["/pusht/zone_markers"].name,
+        MarkerArray, TOPICS["zone_markers"].name,
         lambda msg: zones_in_force.append(sum(m.action == m.ADD for m in msg.markers)),
-        qos_profile(TOPICS["/pusht/zone_markers"]))
-    reset = node.create_client(Trigger, SERVICES["/pusht/reset"].name)
+        qos_profile(TOPICS["zone_markers"]))
+    reset = node.create_client(Trigger, SERVICES["reset"].name)
 
     children = Children(output)
     deadline = time.monotonic() + args.timeout
@@ -169,8 +169,8 @@ def run_trial(args: argparse.Namespace) -> dict:
                 rclpy.spin_once(node, timeout_sec=0.05)
 
         def discovered() -> bool:
-            setpoint, pusher = TOPICS["/pusht/setpoint"].name, TOPICS["/pusht/pusher"].name
-            zones = TOPICS["/pusht/zones"].name
+            setpoint, pusher = TOPICS["setpoint"].name, TOPICS["pusher"].name
+            zones = TOPICS["zones"].name
             ready = (node.count_publishers(setpoint) >= 1 and node.count_subscribers(setpoint) >= 3
                      and node.count_subscribers(pusher) >= 3 and reset.service_is_ready())
             if scenario is not None:

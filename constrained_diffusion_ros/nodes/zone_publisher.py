@@ -96,7 +96,7 @@ class ZonePublisher(Node):
         if len(set(ids)) != len(ids):
             raise ValueError(f"zone ids collide: {ids} (set first_id, zone_id or remove_id)")
 
-        topic = TOPICS["/pusht/zones"]
+        topic = TOPICS["zones"]
         self.pub = self.create_publisher(PolygonInstanceStamped, topic.name, qos_profile(topic))
         self.follow = bool(param("follow_sim_time")) and self.scenario is not None \
             and self.scenario.moving
@@ -104,7 +104,7 @@ class ZonePublisher(Node):
         self.sim_time: Time | None = None  # stamp of the sim step last seen
         self.start = self.get_clock().now()
         if self.follow:
-            pusher = TOPICS["/pusht/pusher"]
+            pusher = TOPICS["pusher"]
             self.create_subscription(PointStamped, pusher.name, self.on_pusher,
                                      qos_profile(pusher))
         rate_hz = float(param("rate_hz"))

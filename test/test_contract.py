@@ -1,0 +1,39 @@
+"""The topic contract is the one home of topic names: the README's diagram is generated from it,
+every type exists, and no node writes a topic string of its own."""
+
+from __future__ import annotations
+
+import importlib
+import re
+from pathlib import Path
+
+from msg_schemas import SERVICES, TOPICS
+from msg_schemas.diagram import mermaid
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_readme_diagram_is_the_generated_one() -> None:
+    assert mermaid() in (REPO / "README.md").read_text()
+
+
+def test_every_interface_type_resolves_to_a_ros_class() -> None:
+    for endpoint in [*TOPICS.values(), *SERVICES.values()]:
+        package, kind, name = endpoint.type.split("/")
+        module = importlib.import_module(f"{package}.{kind}")
+        assert hasattr(module, name), endpoint.type
+
+
+def test_no_source_file_writes_a_topic_name_outside_the_contract() -> None:
+    names = [e.name for e in [*TOPICS.values(), *SERVICES.values()]]
+    pattern = re.compile("|".join(re.escape(name) for name in names))
+    sources = [*REPO.glob("constrained_diffusion_ros/**/*.py"), *REPO.glob("sim_bridge/*.py"),
+               *REPO.glob("msg_schemas/*.py"), *REPO.glob("scripts/*.py")]
+    offenders = [str(path.relative_to(REPO)) for path in sources
+                 if path.name != "contract.py" and pattern.search(path.read_text())]
+    assert len(sources) > 20 and offenders == []
+
+
+def test_code_refers_to_topics_by_their_contract_key() -> None:
+    assert TOPICS["setpoint"].name == "/pusht/setpoint"
+    assert SERVICES["reset"].type == "std_srvs/srv/Trigger"

@@ -8,7 +8,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 DATASET ?= ../shared/datasets/pusht_cchi_v7_replay.zarr
 
-.PHONY: setup demo test lint bench clean-venv
+.PHONY: setup demo test bench evaluation clean-venv
 
 $(STAMP): requirements.txt requirements-test.txt setup.py package.xml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -28,6 +28,12 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python scripts/bench_sim.py
+	$(BIN)/benchmark_policy
+	$(BIN)/python scripts/bench_constraints.py --dataset $(DATASET)
+	$(BIN)/python scripts/bench_realtime.py
+
+evaluation: $(STAMP)
+	$(BIN)/evaluate --output docs/evaluation
 
 clean-venv:
 	rm -rf $(VENV)

@@ -16,8 +16,7 @@ FRAME_ID = "workspace"  # PushT workspace: 512 x 512 px, origin top-left, y down
 class Endpoint:
     name: str
     type: str  # ROS interface type, e.g. "geometry_msgs/msg/PointStamped"
-    qos: str  # "sensor": reliable, keep last 10, volatile; "latched": reliable, keep last 100,
-    #            transient local (late joiners get the latest zones)
+    qos: str  # "sensor" or "latched" (late joiners get the zones in force): see qos_profile
     publisher: str
     subscribers: tuple[str, ...]
     units: str
@@ -63,12 +62,21 @@ SERVICES: dict[str, Endpoint] = {e.key: e for e in (
 )}
 
 
-def qos_profile(endpoint: Endpoint):
-    """The rclpy QoS profile for a topic of the contract (imports rclpy lazily)."""
+def qos_profile(endpoint: Endpoint, role: str = "subscriber"):
+    """The rclpy QoS profile of a topic for a role: "publisher", "subscriber" or "recorder".
+
+    All reliable. Publishers keep their recent history (transient local) so that a recorder
+    whose match arrives late still gets the first messages of a trial; live subscribers of
+    sensor topics ask for no history (volatile), so a simulator never acts on stale setpoints;
+    latched topics (zones) give every late joiner the zones in force.
+    """
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+    if role not in ("publisher", "subscriber", "recorder"):
+        raise ValueError(f"unknown QoS role {role!r}")
     latched = endpoint.qos == "latched"
+    keeps_history = latched or role != "subscriber"
+    depth = 100 if latched else (1000 if keeps_history else 10)
     return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST, depth=100 if latched else 10,
-        reliability=ReliabilityPolicy.RELIABLE,
-        durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+        history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if keeps_history else DurabilityPolicy.VOLATILE)

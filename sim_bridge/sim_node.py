@@ -1,8 +1,9 @@
 """ROS 2 node around the ROS-free PushT simulator: observations out, setpoints in.
 
-Two modes. `lockstep` (default): every setpoint received is exactly one control step, so a trial
-is deterministic however slow the policy is. `realtime`: a timer steps at `rate_hz` with the latest
-setpoint, as a real robot would, holding the last one.
+Two modes. `lockstep` (default): a setpoint stamped with the current observation's stamp is
+exactly one control step, so a trial is deterministic however slow the policy is; setpoints
+with any other stamp (duplicates of answers already used) are dropped. `realtime`: a timer
+steps at `rate_hz` with the latest setpoint, as a real robot would, holding the last one.
 
 Every observation is stamped with simulated time (control step * 0.1 s) and published as four
 messages with the same stamp: block pose, score, keypoints, then the pusher, last, because the
@@ -86,7 +87,8 @@ class SimNode(Node):
         self._last_publish = 0.0
 
         def publisher(msg_type, topic: str):
-            return self.create_publisher(msg_type, TOPICS[topic].name, qos_profile(TOPICS[topic]))
+            return self.create_publisher(msg_type, TOPICS[topic].name,
+                                         qos_profile(TOPICS[topic], "publisher"))
 
         self.pose_pub = publisher(PoseStamped, "block_pose")
         self.score_pub = publisher(Float64, "score")
@@ -167,6 +169,9 @@ class SimNode(Node):
         if self.mode == "realtime":
             self.target = (msg.point.x, msg.point.y)
             return
+        stamp, current = msg.header.stamp, sim_stamp(self.step_count)
+        if (stamp.sec, stamp.nanosec) != (current.sec, current.nanosec):
+            return  # answers another observation (a duplicate of one already stepped past)
         try:
             self.step(msg.point.x, msg.point.y)
         except ValueError as error:  # the simulator's own check, should the two ever differ
@@ -182,7 +187,9 @@ class SimNode(Node):
 
     def on_idle(self) -> None:
         """Lockstep: re-send the observation while no setpoint has answered it (see above)."""
-        if self.running and time.monotonic() - self._last_publish >= REPUBLISH_PERIOD_S:
+        finished = self.max_steps > 0 and self.step_count >= self.max_steps
+        if self.running and not finished and \
+                time.monotonic() - self._last_publish >= REPUBLISH_PERIOD_S:
             self.publish_observation()
 
     def on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:

@@ -8,26 +8,19 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import random
 import signal
 import subprocess
-import sys
-import time
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
-import rclpy
 import yaml
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PointStamped, PolygonInstanceStamped, PolygonStamped, PoseStamped
 from nav_msgs.msg import Path as PathMsg
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
+from ros_helpers import Processes, Ros, random_domain_id, stamp_ns
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 from std_msgs.msg import Float64
@@ -38,105 +31,17 @@ from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 from msg_schemas import FRAME_ID, SERVICES, TOPICS, qos_profile
 from sim_bridge.pusht import PushTSim, seeded_state
 
-REPO = Path(__file__).resolve().parents[1]
-DOMAIN_ID = random.SystemRandom().randint(1, 100)
+DOMAIN_ID = random_domain_id()
 SEED = 100000
-DISCOVERY_S = 20.0  # discovery takes a few seconds here; generous for a loaded machine
-
-
-def stamp_ns(stamp) -> int:
-    return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
 def step_ns(step: int) -> int:
     return step * 100_000_000
 
 
-class Processes:
-    """Node processes started by a test; `stop_all` interrupts them like Ctrl-C, then kills."""
-
-    def __init__(self, log_dir: Path) -> None:
-        self.log_dir = log_dir
-        self.started: list[subprocess.Popen] = []
-        self.env = {**os.environ, "ROS_DOMAIN_ID": str(DOMAIN_ID), "OMP_NUM_THREADS": "1",
-                    "PYTHONUNBUFFERED": "1", "RCUTILS_LOGGING_BUFFERED_STREAM": "0",
-                    "ROS_LOG_DIR": str(log_dir / "ros_log")}
-
-    def start(self, module: str, name: str, remap: dict[str, str] | None = None,
-              **params: object) -> tuple[subprocess.Popen, Path]:
-        args = [sys.executable, "-m", module, "--ros-args"]
-        for source, target in (remap or {}).items():
-            args += ["-r", f"{source}:={target}"]
-        for key, value in params.items():
-            args += ["-p", f"{key}:={_param_text(value)}"]
-        log = self.log_dir / f"{name}.log"
-        with log.open("w") as out:
-            process = subprocess.Popen(args, cwd=REPO, env=self.env, stdout=out,
-                                       stderr=subprocess.STDOUT)
-        self.started.append(process)
-        return process, log
-
-    def stop_all(self) -> None:
-        for process in self.started:
-            if process.poll() is None:
-                process.send_signal(signal.SIGINT)
-        for process in self.started:
-            try:
-                process.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
-        self.started.clear()
-
-
-def _param_text(value: object) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    return str(value)
-
-
-class Ros:
-    """The in-process test node, on its own context in the test domain."""
-
-    def __init__(self) -> None:
-        self.context = Context()
-        rclpy.init(context=self.context, domain_id=DOMAIN_ID)
-        self.node = rclpy.create_node("test_ros_nodes", context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-
-    def spin_until(self, predicate: Callable[[], bool], timeout: float = DISCOVERY_S) -> bool:
-        deadline = time.monotonic() + timeout
-        while not predicate():
-            if time.monotonic() > deadline:
-                return False
-            self.executor.spin_once(timeout_sec=0.02)
-        return True
-
-    def spin_for(self, seconds: float) -> None:
-        """Keep receiving for a while: only to check that nothing *more* arrives."""
-        deadline = time.monotonic() + seconds
-        while time.monotonic() < deadline:
-            self.executor.spin_once(timeout_sec=0.02)
-
-    def publisher(self, topic: str, msg_type):
-        return self.node.create_publisher(msg_type, TOPICS[topic].name, qos_profile(TOPICS[topic]))
-
-    def inbox(self, topic: str, msg_type) -> list:
-        received: list = []
-        self.node.create_subscription(msg_type, TOPICS[topic].name, received.append,
-                                      qos_profile(TOPICS[topic]))
-        return received
-
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
-
-
 @pytest.fixture(scope="module")
 def ros():
-    handle = Ros()
+    handle = Ros(DOMAIN_ID, "test_ros_nodes")
     yield handle
     handle.close()
 
@@ -148,7 +53,7 @@ def log_dir(tmp_path_factory) -> Path:
 
 @pytest.fixture
 def processes(log_dir):
-    started = Processes(log_dir)
+    started = Processes(log_dir, DOMAIN_ID)
     yield started
     started.stop_all()
 
@@ -163,6 +68,7 @@ class SimLink:
         self.poses = ros.inbox("block_pose", PoseStamped)
         self.scores = ros.inbox("score", Float64)
         self.setpoint_pub = ros.publisher("setpoint", PointStamped)
+        self.sent = 0  # setpoints published, all kept in the publisher's history
         self.reset_client = ros.node.create_client(Trigger, SERVICES["reset"].name)
         self.params = AsyncParameterClient(ros.node, "sim_node")
 
@@ -173,11 +79,13 @@ class SimLink:
     def latest(self) -> PointStamped:
         return self.pushers[-1]
 
-    def send(self, x: float, y: float) -> None:
+    def send(self, x: float, y: float, stamp=None) -> None:
         msg = PointStamped()
-        msg.header.stamp, msg.header.frame_id = self.latest().header.stamp, FRAME_ID
+        msg.header.stamp = stamp if stamp is not None else self.latest().header.stamp
+        msg.header.frame_id = FRAME_ID
         msg.point.x, msg.point.y = float(x), float(y)
         self.setpoint_pub.publish(msg)
+        self.sent += 1
 
     def wait_new_stamps(self, before: list[int], n: int, timeout: float = 10.0) -> list[int]:
         assert self.ros.spin_until(lambda: len(self.stamps()) >= len(before) + n, timeout), \
@@ -209,7 +117,7 @@ class SimLink:
 
 @pytest.fixture(scope="module")
 def sim(ros, log_dir):
-    started = Processes(log_dir)
+    started = Processes(log_dir, DOMAIN_ID)
     process, log = started.start("sim_bridge.sim_node", "sim_node", seed=SEED, mode="lockstep")
     link = SimLink(ros, process, log)
     subscriptions = [s for s in ros.node.subscriptions]
@@ -241,9 +149,11 @@ def test_sim_lockstep_one_observation_per_setpoint(ros, sim):
 
     before = sim.stamps()
     targets = [(first.point.x + 30.0 * (i + 1), first.point.y - 20.0 * (i + 1)) for i in range(5)]
-    for target in targets:  # all at once: the sim must still take exactly one step for each
+    for target in targets:  # each answers the observation in force, whose stamp it carries
         sim.send(*target)
-    new = sim.wait_new_stamps(before, len(targets))
+        sim.wait_new_stamps(sim.stamps(), 1)
+    sim.send(*targets[-1], stamp=first.header.stamp)  # a stale duplicate: dropped
+    new = sim.stamps()[len(before):]
     ros.spin_for(0.3)
     assert sim.stamps()[len(before):] == new == [step_ns(k) for k in range(1, 6)]
 
@@ -343,7 +253,8 @@ def test_zone_publisher_latched_scenario_and_moving_zone(ros, sim, processes):
     before = sim.stamps()
     for _ in range(3):
         sim.send(256.0, 256.0)
-    last = sim.wait_new_stamps(before, 3)[-1]
+        sim.wait_new_stamps(sim.stamps(), 1)
+    last = sim.stamps()[len(before):][-1]
     assert ros.spin_until(lambda: any(
         m.polygon.id == 20 and stamp_ns(m.header.stamp) == last for m in zones))
     message = next(m for m in zones if m.polygon.id == 20 and stamp_ns(m.header.stamp) == last)
@@ -389,10 +300,12 @@ def test_recorder_writes_every_topic_and_metadata(ros, sim, processes, tmp_path)
 
     assert ros.spin_until(recorder_matched_all), f"recorder not matched:\n{log.read_text()}"
 
+    assert sim.reset(SEED).success  # stamps restart at 0: the steps below are told apart
     before = sim.stamps()
-    for i in range(3):
+    for i in range(3):  # one at a time: each answers the observation in force
         sim.send(150.0 + 10 * i, 300.0)
-    new = sim.wait_new_stamps(before, 3)
+        sim.wait_new_stamps(sim.stamps(), 1)
+    new = sim.stamps()[len(before):]
     for i in range(2):
         publishers["plan"].publish(PathMsg())
         publishers["policy_status"].publish(DiagnosticStatus(name="policy", message=str(i)))
@@ -407,11 +320,14 @@ def test_recorder_writes_every_topic_and_metadata(ros, sim, processes, tmp_path)
 
     counts, messages, connections = _bag_counts(bag)
     assert (bag / "bag.mcap").is_file()
-    assert counts["/pusht/setpoint"] == 3
+    # Publishers keep their history (transient local) and the recorder asks for it, so the bag
+    # holds every setpoint this session published, from before the recorder started too.
+    assert counts["/pusht/setpoint"] == sim.sent
     for topic in published:
         assert counts.get(TOPICS[topic].name) == 2, topic
     for topic in ("/pusht/pusher", "/pusht/keypoints", "/pusht/block_pose"):
         recorded = [stamp_ns(m.header.stamp) for m in messages[topic]]
+        recorded = recorded[len(recorded) - recorded[::-1].index(0):]  # since the last reset
         assert set(new) <= set(recorded), topic
         assert all(recorded.count(s) == 1 for s in new[:-1]), topic  # no step recorded twice
     assert counts["/pusht/score"] >= 3

@@ -12,7 +12,6 @@ import sys
 import time
 
 import numpy as np
-import rclpy
 import torch
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from geometry_msgs.msg import (
@@ -75,6 +74,7 @@ class PolicyNode(Node):
         self.keypoints: dict[float, np.ndarray] = {}
         self.pushers: dict[float, np.ndarray] = {}
         self.last_stamp = -1.0
+        self.last_setpoint: PointStamped | None = None
         self.violations = self.plans = 0
         self.zone_change_time: float | None = None
         self.replan_latency_ms = float("nan")
@@ -85,7 +85,8 @@ class PolicyNode(Node):
     # -- wiring ---------------------------------------------------------------------------------
 
     def _publisher(self, topic: str, msg_type):
-        return self.create_publisher(msg_type, TOPICS[topic].name, qos_profile(TOPICS[topic]))
+        return self.create_publisher(msg_type, TOPICS[topic].name,
+                                     qos_profile(TOPICS[topic], "publisher"))
 
     def _subscribe(self, topic: str, msg_type, callback) -> None:
         self.create_subscription(msg_type, TOPICS[topic].name, callback,
@@ -142,18 +143,22 @@ class PolicyNode(Node):
             return
         stamp = stamp_seconds(msg.header.stamp)
         self.keypoints[stamp] = np.array([(p.x, p.y) for p in msg.polygon.points])
-        self._maybe_act(stamp)
+        self._maybe_act(stamp, msg.header.stamp)
 
     def _on_pusher(self, msg: PointStamped) -> None:
         stamp = stamp_seconds(msg.header.stamp)
         self.pushers[stamp] = np.array([msg.point.x, msg.point.y])
-        self._maybe_act(stamp, msg.header)
+        self._maybe_act(stamp, msg.header.stamp)
 
-    def _maybe_act(self, stamp: float, header=None) -> None:
+    def _maybe_act(self, stamp: float, stamp_msg) -> None:
         if stamp not in self.keypoints or stamp not in self.pushers:
             return
         if stamp == self.last_stamp:
-            return  # a repeated observation (the simulator re-sends until answered)
+            # The simulator re-sends an observation until answered: the answer may have been
+            # lost to a subscriber not yet matched, so send it again (no new plan, no noise).
+            if self.last_setpoint is not None:
+                self.setpoint_pub.publish(self.last_setpoint)
+            return
         observation = np.concatenate([self.keypoints.pop(stamp).reshape(-1),
                                       self.pushers.pop(stamp)])
         for old in [s for s in self.keypoints if s < stamp]:
@@ -171,17 +176,19 @@ class PolicyNode(Node):
         started = time.perf_counter()
         setpoint = self.chunks.act(observation[None].astype(np.float32), step)[0]
         planning_ms = 1000 * (time.perf_counter() - started)
-        self._publish_setpoint(setpoint, stamp)
+        self._publish_setpoint(setpoint, stamp_msg)
         if self.chunks.last_plan is not None:
             self._after_plan()
         self._publish_status(planning_ms)
 
-    def _publish_setpoint(self, setpoint: np.ndarray, stamp: float) -> None:
+    def _publish_setpoint(self, setpoint: np.ndarray, stamp_msg) -> None:
+        """Stamped with the observation's own stamp (exact nanoseconds): lockstep matches it."""
         msg = PointStamped()
-        msg.header.stamp = rclpy.time.Time(seconds=stamp).to_msg()
+        msg.header.stamp = stamp_msg
         msg.header.frame_id = FRAME_ID
         msg.point = Point(x=float(setpoint[0]), y=float(setpoint[1]), z=0.0)
         self.setpoint_pub.publish(msg)
+        self.last_setpoint = msg
         area = self._area()
         if area is not None and bool(area.contains(torch.tensor(setpoint[None]))[0]):
             self.violations += 1

@@ -95,7 +95,7 @@ class Recorder(Node):
         self.subscriptions_by_topic = {
             endpoint.name: self.create_subscription(
                 message_class(endpoint.type), endpoint.name, partial(self.on_message, endpoint),
-                qos_profile(endpoint), raw=True)
+                qos_profile(endpoint, "recorder"), raw=True)
             for endpoint in TOPICS.values()}
         self.publisher_timer = self.create_timer(0.2, self.check_publishers)
         self.get_logger().info(f"recording {len(TOPICS)} topics to {self.output}")
@@ -119,7 +119,7 @@ class Recorder(Node):
         if connection is None:
             connection = self.writer.add_connection(
                 endpoint.name, endpoint.type, typestore=self.typestore,
-                offered_qos_profiles=[bag_qos(qos_profile(endpoint))])
+                offered_qos_profiles=[bag_qos(qos_profile(endpoint, "publisher"))])
             self.connections[endpoint.name] = connection
         self.writer.write(connection, self.get_clock().now().nanoseconds, data)
         self.counts[endpoint.name] += 1

@@ -22,7 +22,7 @@ import numpy as np
 
 from constrained_diffusion_ros.evaluation.rollout import RolloutLog
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
-from constrained_diffusion_ros.paths import default_model_dir
+from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from msg_schemas import SERVICES, TOPICS
 from sim_bridge import CONTROL_HZ
 
@@ -40,7 +40,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--scenario", default="center_0.2",
                         help="zones from config/scenarios.yaml ('none' for no zones)")
     parser.add_argument("--configuration", default="r_g10_p_safe",
-                        help="constraint configuration from config/configurations.yaml")
+                        help="constraint configuration from the configurations file")
+    parser.add_argument("--configurations-file",
+                        default=str(config_dir() / "configurations.yaml"),
+                        help="YAML of constraint configurations the policy node reads")
     parser.add_argument("--seed", type=int, default=100000, help="PushT scene seed")
     parser.add_argument("--steps", type=int, default=200, help="control (action) steps")
     parser.add_argument("--model", default=str(default_model_dir()), help="policy directory")
@@ -135,11 +138,11 @@ def run_trial(args: argparse.Namespace) -> dict:
                                   ("block_pose", "block", PoseStamped),
                                   ("setpoint", "setpoint", PointStamped)):
         node.create_subscription(msg_type, TOPICS[topic].name, keep(kind),
-                                 qos_profile(TOPICS[topic]))
+                                 qos_profile(TOPICS[topic], "recorder"))
     scores: list[float] = []
     node.create_subscription(Float64, TOPICS["score"].name,
                              lambda msg: scores.append(msg.data),
-                             qos_profile(TOPICS["score"]))
+                             qos_profile(TOPICS["score"], "recorder"))
     zones_in_force: list[int] = []
     node.create_subscription(
         MarkerArray, TOPICS["zone_markers"].name,
@@ -157,7 +160,8 @@ def run_trial(args: argparse.Namespace) -> dict:
         if scenario is not None:
             children.start("zone_publisher", {"scenario": args.scenario})
         children.start("policy_node", {"model": str(args.model),
-                                       "configuration": args.configuration})
+                                       "configuration": args.configuration,
+                                       "configurations_file": args.configurations_file})
 
         def spin_until(condition, what: str) -> None:
             while not condition():
@@ -203,6 +207,11 @@ def run_trial(args: argparse.Namespace) -> dict:
 def trial_log(received: dict, seed: int, steps: int) -> RolloutLog:
     """The recorded trial as a RolloutLog, so its metrics come from the evaluation's code."""
     from sim_bridge import coverage
+
+    for kind, last in (("pusher", steps), ("block", steps), ("setpoint", steps - 1)):
+        missing = sorted(set(range(last + 1)) - set(received[kind]))
+        if missing:
+            raise RuntimeError(f"the trial lacks {kind} messages for steps {missing[:5]}")
 
     def quaternion_yaw(q) -> float:
         return 2.0 * np.arctan2(q.z, q.w)

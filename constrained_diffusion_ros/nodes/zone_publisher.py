@@ -97,7 +97,8 @@ class ZonePublisher(Node):
             raise ValueError(f"zone ids collide: {ids} (set first_id, zone_id or remove_id)")
 
         topic = TOPICS["zones"]
-        self.pub = self.create_publisher(PolygonInstanceStamped, topic.name, qos_profile(topic))
+        self.pub = self.create_publisher(PolygonInstanceStamped, topic.name,
+                                         qos_profile(topic, "publisher"))
         self.follow = bool(param("follow_sim_time")) and self.scenario is not None \
             and self.scenario.moving
         self.step = 0

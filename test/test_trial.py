@@ -1,0 +1,346 @@
+"""Whole trials over real DDS: the simulator, the policy and zone publishers as separate processes.
+
+The policy is a tiny random network (saved to a temporary directory) with 5-step DDIM
+configurations, so a trial takes seconds. Its unconstrained setpoints are noise-like and pile up
+at the workspace edges: measured on scene 100000 with noise seed 0, about a third of them fall in
+the top band y < 64, which is therefore the zone the lifecycle test places, so that obeying it is
+not vacuous. Everything here is deterministic (lockstep simulation, seeded noise, zone changes at
+fixed steps); the waits only absorb process start-up and discovery.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import shapely
+import yaml
+from diagnostic_msgs.msg import DiagnosticStatus
+from geometry_msgs.msg import Point32, PointStamped, PolygonInstanceStamped, PolygonStamped
+from ros_helpers import (
+    REPO,
+    Processes,
+    Ros,
+    child_env,
+    random_domain_id,
+    stamp_step,
+)
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
+
+from constrained_diffusion_ros.evaluation.bags import read_messages, read_trial
+from constrained_diffusion_ros.evaluation.runner import evaluate_configuration
+from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
+from constrained_diffusion_ros.policy.weights import load_policy, save_policy
+from constrained_diffusion_ros.sampling.constraints import load_configurations
+from msg_schemas import FRAME_ID, SERVICES, TOPICS
+from sim_bridge.sim_node import sim_stamp
+
+DOMAIN_ID = random_domain_id()
+SEED = 100000
+CONFIGURATIONS = {
+    "fast_project": {"sampler": "ddim", "denoising_steps": 5, "project": True},
+    "fast_none": {"sampler": "ddim", "denoising_steps": 5},
+}
+ZONE_ID = 7
+ZONE = ((0.0, 0.0), (512.0, 0.0), (512.0, 64.0), (0.0, 64.0))  # the top band, see above
+ZONE_SHAPE = shapely.Polygon(ZONE)
+BOW_TIE = ((100.0, 100.0), (200.0, 200.0), (200.0, 100.0), (100.0, 200.0))
+TWO_POINTS = ((300.0, 300.0), (350.0, 350.0))
+PRE_ZONE_STEPS = 12  # mid-chunk (chunks of 8 start at steps 0, 8, 16, ...)
+PROBE_STEP = 10_000  # stamps of the test's own probe observations: far past any trial step
+# The sim's setpoint input is remapped here, so only setpoints the test forwards reach it.
+GATED_SETPOINT = TOPICS["setpoint"].name + "_gated"
+
+POLICY_NODE = "constrained_diffusion_ros.nodes.policy_node"
+ZONE_PUBLISHER = "constrained_diffusion_ros.nodes.zone_publisher"
+
+
+@pytest.fixture
+def tiny_model(make_tiny_policy, tmp_path) -> Path:
+    return save_policy(make_tiny_policy(0), tmp_path / "tiny_policy")
+
+
+@pytest.fixture
+def configurations_file(tmp_path) -> Path:
+    path = tmp_path / "configurations.yaml"
+    path.write_text(yaml.safe_dump(CONFIGURATIONS))
+    return path
+
+
+@pytest.fixture
+def ros():
+    handle = Ros(DOMAIN_ID, "test_trial")
+    yield handle
+    handle.close()
+
+
+@pytest.fixture
+def processes(tmp_path):
+    started = Processes(tmp_path, DOMAIN_ID)
+    yield started
+    started.stop_all()
+
+
+def depth(msg: PointStamped) -> float:
+    """How far a setpoint lies inside the zone (px); negative outside, 0 on its boundary."""
+    point = shapely.Point(msg.point.x, msg.point.y)
+    distance = ZONE_SHAPE.exterior.distance(point)
+    return distance if ZONE_SHAPE.contains(point) else -distance
+
+
+def values(status: DiagnosticStatus) -> dict[str, str]:
+    return {kv.key: kv.value for kv in status.values}
+
+
+class GatedLoop:
+    """The sim and the policy closed through the test node: the policy publishes on the contract
+    topic, the sim listens on a remapped one, and the test forwards one setpoint at a time. So
+    the test knows exactly which setpoints were computed after a zone change took effect."""
+
+    def __init__(self, ros: Ros) -> None:
+        self.ros = ros
+        self.setpoints: dict[int, PointStamped] = {}
+        self.received = 0  # distinct setpoints; the policy publishes one status with each
+        self.duplicates: list[bool] = []  # per repeated answer: identical to the first?
+        ros.inbox("setpoint", PointStamped, self._keep)
+        self.statuses = ros.inbox("policy_status", DiagnosticStatus)
+        self.markers = ros.inbox("zone_markers", MarkerArray)
+        self.gate = ros.publisher("setpoint", PointStamped, GATED_SETPOINT)
+        self.zones = ros.publisher("zones", PolygonInstanceStamped)
+        self.probe_keypoints = ros.publisher("keypoints", PolygonStamped)
+        self.probe_pusher = ros.publisher("pusher", PointStamped)
+        self.reset = ros.node.create_client(Trigger, SERVICES["reset"].name)
+        self.forwarded = 0  # setpoints forwarded to the sim so far = steps executed
+
+    def _keep(self, msg: PointStamped) -> None:
+        step = stamp_step(msg.header.stamp)
+        if step in self.setpoints:  # the policy re-sends its answer to a re-sent observation
+            first = self.setpoints[step].point
+            self.duplicates.append((msg.point.x, msg.point.y) == (first.x, first.y))
+            return
+        self.received += 1
+        self.setpoints[step] = msg
+
+    def discovered(self) -> bool:
+        """Every endpoint of the test node matched, as the test node sees it, and the policy
+        subscribed to the sim's observations (`probe` checks the policy's side)."""
+        graph = self.ros.node
+        return (all(s.get_publisher_count() >= 1 for s in graph.subscriptions)
+                and self.gate.get_subscription_count() >= 1
+                and self.zones.get_subscription_count() >= 1
+                and self.probe_keypoints.get_subscription_count() >= 1
+                and self.probe_pusher.get_subscription_count() >= 1
+                and graph.count_subscribers(TOPICS["pusher"].name) >= 1
+                and graph.count_subscribers(TOPICS["keypoints"].name) >= 1
+                and self.reset.service_is_ready())
+
+    def wait_answer(self, step: int) -> PointStamped:
+        """The policy's setpoint for observation `step`, and its status."""
+        assert self.ros.spin_until(lambda: step in self.setpoints, 15.0), \
+            f"no setpoint for step {step}"
+        assert self.ros.spin_until(lambda: len(self.statuses) >= self.received, 5.0)
+        return self.setpoints[step]
+
+    def probe(self) -> None:
+        """Observations from the test node until the policy answers one.
+
+        Matching is not symmetric: the test's reader can see the policy's writer before that
+        writer sees the reader, and a setpoint published in between is lost for good (the
+        policy answers each observation once; the sim's re-sends are dropped as repeats). An
+        answer to a probe proves both of the policy's writers (setpoint, status) reach the test.
+        The sim's first observation (stamp 0) then starts a new episode in the policy (chunk
+        dropped, noise reseeded), so the probes leave no trace in the trial."""
+        def answered() -> bool:
+            return any(step >= PROBE_STEP for step in self.setpoints)
+
+        for step in range(PROBE_STEP, PROBE_STEP + 40):  # a new stamp each: never a repeat
+            stamp = sim_stamp(step)
+            keypoints = PolygonStamped()
+            keypoints.header.stamp, keypoints.header.frame_id = stamp, FRAME_ID
+            keypoints.polygon.points = [Point32(x=256.0, y=256.0 + i, z=0.0) for i in range(9)]
+            pusher = PointStamped()
+            pusher.header = keypoints.header
+            pusher.point.x, pusher.point.y = 100.0, 100.0
+            self.probe_keypoints.publish(keypoints)
+            self.probe_pusher.publish(pusher)
+            if self.ros.spin_until(answered, 0.5):
+                assert self.ros.spin_until(lambda: len(self.statuses) >= self.received, 5.0)
+                return
+        raise AssertionError("the policy never answered a probe observation")
+
+    def start(self) -> None:
+        self.probe()
+        future = self.reset.call_async(Trigger.Request())
+        assert self.ros.spin_until(future.done, 10.0) and future.result().success
+        self.wait_answer(0)
+
+    def forward(self, n: int) -> None:
+        """Execute the next `n` setpoints, one step each; ends holding the next answer."""
+        for _ in range(n):
+            self.gate.publish(self.setpoints[self.forwarded])
+            self.forwarded += 1
+            self.wait_answer(self.forwarded)
+
+    def answers(self, first: int, last: int) -> list[PointStamped]:
+        return [self.setpoints[step] for step in range(first, last + 1)]
+
+    def zones_shown(self) -> list[np.ndarray] | None:
+        """Polygons of the policy's latest zone markers (closing vertex dropped); None before
+        any."""
+        if not self.markers:
+            return None
+        return [np.array([(p.x, p.y) for p in m.points])[:-1]
+                for m in self.markers[-1].markers if m.action == m.ADD]
+
+    def publish_zone(self, zone_id: int, vertices) -> None:
+        msg = PolygonInstanceStamped()
+        msg.header.frame_id = FRAME_ID
+        msg.polygon.id = zone_id
+        msg.polygon.polygon.points = [Point32(x=x, y=y, z=0.0) for x, y in vertices]
+        self.zones.publish(msg)
+
+
+def test_zone_from_another_process_obeyed_refused_and_removed(
+        ros, processes, tiny_model, configurations_file):
+    loop = GatedLoop(ros)
+    _, sim_log = processes.start("sim_bridge.sim_node", "sim_node",
+                                 remap={TOPICS["setpoint"].name: GATED_SETPOINT},
+                                 seed=SEED, mode="lockstep", autostart=False)
+    policy, policy_log = processes.start(POLICY_NODE, "policy_node", model=tiny_model,
+                                         configurations_file=configurations_file,
+                                         configuration="fast_project")
+
+    def logs() -> str:
+        return "\n".join(f"--- {log.name}\n{log.read_text()}" for log in processes.log_dir.glob(
+            "*.log"))
+
+    assert ros.spin_until(loop.discovered), f"nodes not discovered:\n{logs()}"
+    loop.start()
+
+    # (a) A zone arrives mid-trial from a zone_publisher process; every later setpoint obeys it.
+    loop.forward(PRE_ZONE_STEPS)  # answers 0..12 computed with no zone; 0..11 executed
+    unconstrained = loop.answers(0, loop.forwarded)
+    assert sum(depth(m) > 1.0 for m in unconstrained) >= 2, \
+        "the tiny policy no longer goes where the zone will be: the test would be vacuous"
+    text = ";".join(f"{x:g},{y:g}" for x, y in ZONE)
+    adder, _ = processes.start(ZONE_PUBLISHER, "zone_publisher_add", polygon=text,
+                               zone_id=ZONE_ID, rate_hz=0.0)  # once, latched
+    assert ros.spin_until(lambda: loop.zones_shown() is not None and len(loop.zones_shown()) == 1),\
+        f"the policy never showed the zone:\n{logs()}"
+    shown = loop.zones_shown()[0]
+    assert shapely.Polygon(shown).equals(ZONE_SHAPE)
+    first_constrained = loop.forwarded + 1  # the held answer was computed before the zone
+    loop.forward(16)
+    constrained = loop.answers(first_constrained, loop.forwarded)
+    assert len(constrained) == 16
+    assert max(depth(m) for m in constrained) < 0.0, \
+        [(m.point.x, m.point.y) for m in constrained if depth(m) >= 0.0]
+    status = values(loop.statuses[-1])
+    assert status["zones"] == "1" and status["violations"] == "0"
+    assert status["configuration"] == "fast_project"
+
+    # (c) Malformed zones from the test node: refused with a warning naming the fault; the zone
+    # in force (same id 7 for the bow-tie) stays, setpoints keep coming and keep obeying it.
+    markers_before, statuses_before = len(loop.markers), len(loop.statuses)
+    loop.publish_zone(ZONE_ID, BOW_TIE)
+    loop.publish_zone(ZONE_ID + 1, TWO_POINTS)
+
+    def refused() -> bool:
+        text = policy_log.read_text()
+        return all(s in text for s in ("zone 7 refused", "Self-intersection", "zone 8 refused",
+                                       "at least 3 distinct vertices"))
+
+    assert ros.spin_until(refused, 10.0), policy_log.read_text()
+    mark = loop.forwarded
+    loop.forward(12)  # past a chunk boundary: at least one new plan after the refusals
+    after_refusal = loop.answers(mark + 1, loop.forwarded)
+    assert max(depth(m) for m in after_refusal) < 0.0
+    statuses = loop.statuses[statuses_before:]
+    assert len(statuses) >= 12 and {values(s)["zones"] for s in statuses} == {"1"}
+    assert len(loop.markers) == markers_before  # the zones in force never changed
+    assert policy.poll() is None and "Traceback" not in policy_log.read_text()
+
+    # (b) Removal by another zone_publisher process (empty polygon for id 7): the policy is free
+    # to enter the former zone again, and the tiny policy does within a few chunks.
+    assert Processes.stop(adder) == 0  # rate 0: it would not re-send anyway
+    processes.start(ZONE_PUBLISHER, "zone_publisher_remove", remove_id=ZONE_ID, rate_hz=0.0)
+    assert ros.spin_until(lambda: loop.zones_shown() == []), \
+        f"the policy never removed the zone:\n{logs()}"
+    first_free = loop.forwarded + 1
+    for _ in range(32):
+        if depth(loop.setpoints[loop.forwarded]) > 1.0 and loop.forwarded >= first_free:
+            break
+        loop.forward(1)
+    reentered = [m for m in loop.answers(first_free, loop.forwarded) if depth(m) > 1.0]
+    assert reentered, "no setpoint entered the former zone within 32 steps after its removal"
+    assert values(loop.statuses[-1])["zones"] == "0"
+    assert all(loop.duplicates)  # a repeated answer is the same setpoint: nothing replanned
+    assert "Traceback" not in sim_log.read_text()
+
+
+def test_trial_command_records_the_batched_evaluation(tiny_model, configurations_file, tmp_path):
+    """`trial` end to end, checked against the ROS-free batched evaluation of the same episode.
+
+    left_0.5 / fast_project / seed 100019: the tiny policy scores s > 0 there and, unconstrained
+    (fast_none), commands setpoints inside the zone, so equal s and r = 0 are not vacuous."""
+    scenario_name, seed, steps = "left_0.5", 100019, 16
+    output = tmp_path / "trial"
+    command = [sys.executable, "-m", "constrained_diffusion_ros.nodes.trial",
+               "--scenario", scenario_name, "--configuration", "fast_project",
+               "--configurations-file", str(configurations_file), "--seed", str(seed),
+               "--steps", str(steps), "--output", str(output), "--model", str(tiny_model),
+               "--timeout", "60"]
+    process = subprocess.Popen(command, cwd=REPO, env=child_env(DOMAIN_ID % 100 + 1, tmp_path),
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        out, _ = process.communicate(timeout=90)
+    finally:
+        if process.poll() is None:  # the trial stops its own nodes on SIGINT
+            process.send_signal(signal.SIGINT)
+            process.communicate(timeout=20)
+    assert process.returncode == 0, out
+    for name in ("bag", "frames.png", "trial.gif", "trial.json"):
+        assert (output / name).exists(), name
+    assert (output / "frames.png").read_bytes().startswith(b"\x89PNG")
+    assert len(iio.imread(output / "trial.gif", index=None)) == steps // 2 + 1
+
+    messages = read_messages(output / "bag")
+    assert set(messages) == {endpoint.name for endpoint in TOPICS.values()}
+    info = yaml.safe_load((output / "bag" / "metadata.yaml").read_text())
+    custom = info["rosbag2_bagfile_information"]["custom_data"]
+    assert json.loads(custom["message_counts"]) == {t: len(m) for t, m in messages.items()}
+    setpoint_steps = [stamp_step(m.header.stamp) for m in messages[TOPICS["setpoint"].name]]
+    # One setpoint per executed step; the policy may also answer the final observation (step
+    # `steps`), which the sim ignores at max_steps, before the trial stops it.
+    assert setpoint_steps[:steps] == list(range(steps))
+    assert setpoint_steps[steps:] in ([], [steps])
+
+    trial = json.loads(custom["trial_metadata"])
+    assert trial == json.loads((output / "trial.json").read_text())
+    assert (trial["scenario"], trial["configuration"], trial["seed"], trial["steps"]) == \
+        (scenario_name, "fast_project", seed, steps)
+    results = trial["results"]
+
+    policy = load_policy(tiny_model)
+    configurations = load_configurations(configurations_file)
+    scenario = load_scenarios()[scenario_name]
+    (cell,), log = evaluate_configuration(policy, configurations["fast_project"], [scenario],
+                                          seeds=[seed], n_steps=steps, progress=False)
+    expected = cell.to_dict()
+    assert results == {key: expected[key] for key in results}
+    assert {"s", "r", "final_score", "r_body"} <= set(results)
+    received = read_trial(output / "bag")
+    commanded = [(received["setpoint"][t].point.x, received["setpoint"][t].point.y)
+                 for t in range(steps)]
+    assert np.array_equal(np.array(commanded), log.commanded[0])  # bit for bit
+    assert results["s"] > 0.0 and results["r"] == 0.0
+    (free,), _ = evaluate_configuration(policy, configurations["fast_none"], [scenario],
+                                        seeds=[seed], n_steps=steps, progress=False)
+    assert free.r > 0.0 and free.s != results["s"]

@@ -8,6 +8,7 @@ frames.png to the output directory and prints the table.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -16,7 +17,7 @@ import torch
 from tqdm import tqdm
 
 from constrained_diffusion_ros.evaluation import report
-from constrained_diffusion_ros.evaluation.runner import evaluate_configuration
+from constrained_diffusion_ros.evaluation.runner import CellResult, evaluate_configuration
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.policy.weights import load_policy
@@ -38,6 +39,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--output", default="docs/evaluation", help="report directory")
     parser.add_argument("--figure", nargs=2, default=["center_0.2", "r_g10_p_safe"],
                         metavar=("SCENARIO", "CONFIG"), help="cell drawn in frames.png")
+    parser.add_argument("--reuse", action="store_true",
+                        help="keep the cells already in OUTPUT/results.json and run only the "
+                             "missing ones (after adding a configuration, say)")
     parser.add_argument("--config-dir", default=str(config_dir()),
                         help="directory with scenarios.yaml and configurations.yaml")
     return parser
@@ -65,10 +69,18 @@ def run(args: argparse.Namespace) -> int:
     seeds = list(range(args.first_seed, args.first_seed + args.episodes))
     output = Path(args.output)
     output.mkdir(parents=True, exist_ok=True)
-    cells, started, figure = [], time.monotonic(), None
+    previous = {}
+    if args.reuse and (output / "results.json").is_file():
+        rows = json.loads((output / "results.json").read_text())
+        previous = {(r["scenario"], r["configuration"]): CellResult(**r) for r in rows}
+    cells, started, figure, reused = [], time.monotonic(), None, 0
     for config in tqdm(configs, desc="configurations", unit="config"):
         chosen = [s for s in scenarios if s.paper or config.scenarios == "all"]
         if not chosen:
+            continue
+        if all((s.name, config.name) in previous for s in chosen):
+            cells += [previous[(s.name, config.name)] for s in chosen]
+            reused += len(chosen)
             continue
         t0 = time.monotonic()
         results, log = evaluate_configuration(policy, config, chosen, seeds, args.steps)
@@ -91,7 +103,8 @@ def run(args: argparse.Namespace) -> int:
                            f"{config.display} on {scenario.label}, seed {seeds[0]}")
     summary = (f"{len(cells)} cells ({paper_cells} of the paper's), {len(seeds)} episodes "
                f"each, {args.steps} steps; wall time {wall:.0f} s on {torch.get_num_threads()} "
-               "threads")
+               "threads" + (f" for the {len(cells) - reused} cells run now ({reused} reused)"
+                            if reused else ""))
     (output / "table.md").write_text(
         f"# Evaluation\n\n{summary}\n\nCells: `s / r` (ours), then the paper's Table I value.\n\n"
         f"{table}\n\n## Every metric\n\n{report.details_table(cells)}\n")

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from constrained_diffusion_ros.evaluation.rollout import RolloutLog
-from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
+from constrained_diffusion_ros.evaluation.scenarios import Scenario, load_scenarios
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from msg_schemas import SERVICES, TOPICS
 from sim_bridge import CONTROL_HZ
@@ -244,15 +244,11 @@ def make_figures(output: Path, scenario, args: argparse.Namespace) -> None:
     from constrained_diffusion_ros.evaluation.report import plot_frames
     from sim_bridge import render_scene
 
-    received = read_trial(output / "bag")
-    log = trial_log(received, args.seed, args.steps)
-    polygons_at = scenario.polygons_at if scenario is not None else (lambda _step: [])
-    from constrained_diffusion_ros.evaluation.scenarios import Scenario
-
-    shown = scenario or Scenario("none", "no zones", ())
+    log = trial_log(read_trial(output / "bag"), args.seed, args.steps)
+    shown = scenario or Scenario("none", "no zones", ())  # a scenario without zones
     plot_frames(log, 0, shown, output / "frames.png",
                 f"{args.configuration} on {shown.label}, seed {args.seed}")
-    frames = [render_scene(log.states[0, t], size=256, zones=polygons_at(t),
+    frames = [render_scene(log.states[0, t], size=256, zones=shown.polygons_at(t),
                            setpoint=log.commanded[0, min(t, args.steps - 1)])
               for t in range(0, args.steps + 1, 2)]
     iio.imwrite(output / "trial.gif", np.stack(frames), duration=100, loop=0)

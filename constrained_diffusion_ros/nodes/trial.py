@@ -96,7 +96,6 @@ def run_trial(args: argparse.Namespace) -> dict:
     import rclpy
     from geometry_msgs.msg import PointStamped, PoseStamped
     from rclpy.node import Node
-    from std_msgs.msg import Float64
     from std_srvs.srv import Trigger
     from visualization_msgs.msg import MarkerArray
 
@@ -120,8 +119,7 @@ def run_trial(args: argparse.Namespace) -> dict:
 
     rclpy.init()
     node = Node("trial")
-    received: dict[str, dict[int, object]] = {"pusher": {}, "block": {}, "setpoint": {},
-                                              "score": {}}
+    received: dict[str, dict[int, object]] = {"pusher": {}, "block": {}, "setpoint": {}}
 
     def keep(kind: str):
         def callback(msg) -> None:
@@ -131,18 +129,11 @@ def run_trial(args: argparse.Namespace) -> dict:
                 received[kind][round(stamp * CONTROL_HZ)] = msg
         return callback
 
-    def last_step() -> int:
-        return max(received["pusher"], default=-1)
-
     for topic, kind, msg_type in (("pusher", "pusher", PointStamped),
                                   ("block_pose", "block", PoseStamped),
                                   ("setpoint", "setpoint", PointStamped)):
         node.create_subscription(msg_type, TOPICS[topic].name, keep(kind),
                                  qos_profile(TOPICS[topic], "recorder"))
-    scores: list[float] = []
-    node.create_subscription(Float64, TOPICS["score"].name,
-                             lambda msg: scores.append(msg.data),
-                             qos_profile(TOPICS["score"], "recorder"))
     zones_in_force: list[int] = []
     node.create_subscription(
         MarkerArray, TOPICS["zone_markers"].name,
@@ -188,8 +179,12 @@ def run_trial(args: argparse.Namespace) -> dict:
                        "the policy to hold the scenario's zones")
         future = reset.call_async(Trigger.Request())
         spin_until(future.done, "the simulator's reset")
-        spin_until(lambda: last_step() >= args.steps and args.steps - 1 in received["setpoint"],
-                   f"{args.steps} control steps")
+        def complete() -> bool:  # topics arrive in no fixed order: wait for every one
+            observed = range(args.steps + 1)
+            return (all(t in received["pusher"] and t in received["block"] for t in observed)
+                    and all(t in received["setpoint"] for t in range(args.steps)))
+
+        spin_until(complete, f"{args.steps} control steps")
         results = trial_results(received, scenario, args)
         metadata["results"] = results
         metadata_file.write_text(json.dumps(metadata, indent=2))

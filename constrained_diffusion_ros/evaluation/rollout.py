@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -45,7 +45,6 @@ class RolloutLog:
     planning_s: float = 0.0  # wall time inside the planner
     planned_chunks: int = 0  # episode-chunks planned (a batched call of R rows counts R)
     planner_calls: int = 0
-    plans: list[tuple[int, np.ndarray, np.ndarray]] = field(default_factory=list)
 
     @property
     def scores(self) -> np.ndarray:
@@ -119,26 +118,21 @@ class ChunkExecutor:
 def rollout(planner: Planner, seeds: Sequence[int], n_steps: int = 200, n_obs_steps: int = 2,
             first_executed: int = 1, n_action_steps: int = 8,
             replan_check: ReplanCheck | None = None, progress: bool = False,
-            description: str = "rollout", keep_plans: bool = False) -> RolloutLog:
+            description: str = "rollout") -> RolloutLog:
     """Runs every seeded scene for `n_steps` control steps, all episodes in one batch."""
     sims = PushTBatch(len(seeds))
     states = [sims.reset(list(seeds))]
     executor = ChunkExecutor(planner, n_obs_steps, first_executed, n_action_steps, replan_check)
-    log = RolloutLog(list(seeds), np.empty(0), np.empty(0), np.empty(0))
     commanded, coverages = [], []
     with tqdm(total=n_steps, desc=description, unit="step", disable=not progress,
               leave=False) as bar:
         for step in range(n_steps):
             action = executor.act(sims.observations(), step)
-            if keep_plans and executor.last_plan is not None:
-                log.plans.append(executor.last_plan)
             states.append(sims.step(action))
             commanded.append(action)
             coverages.append(sims.coverage())
             bar.update(1)
-    log.states = np.stack(states, axis=1)
-    log.commanded = np.stack(commanded, axis=1)
-    log.coverage = np.stack(coverages, axis=1)
-    log.planning_s = executor.planning_s
-    log.planned_chunks, log.planner_calls = executor.planned_chunks, executor.planner_calls
-    return log
+    return RolloutLog(list(seeds), commanded=np.stack(commanded, axis=1),
+                      states=np.stack(states, axis=1), coverage=np.stack(coverages, axis=1),
+                      planning_s=executor.planning_s, planned_chunks=executor.planned_chunks,
+                      planner_calls=executor.planner_calls)

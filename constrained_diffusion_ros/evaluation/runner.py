@@ -85,7 +85,7 @@ def evaluate_configuration(policy: DiffusionPolicy, config: ConstraintConfig,
     generator = torch.Generator().manual_seed(noise_seed)
     assignment = np.repeat(np.arange(len(scenarios)), len(seeds))
     moving = np.array([scenarios[a].moving for a in assignment])
-    horizon = policy.config
+    horizons = policy.config
 
     def area_at(step: int, rows: np.ndarray) -> EpisodeZones:
         return EpisodeZones([s.zones_at(step) for s in scenarios], assignment[rows])
@@ -107,8 +107,8 @@ def evaluate_configuration(policy: DiffusionPolicy, config: ConstraintConfig,
         return due
 
     episode_seeds = [seed for _ in scenarios for seed in seeds]
-    log = rollout(plan, episode_seeds, n_steps, horizon.n_obs_steps, horizon.first_executed,
-                  horizon.n_action_steps, replan_check if moving.any() else None,
+    log = rollout(plan, episode_seeds, n_steps, horizons.n_obs_steps, horizons.first_executed,
+                  horizons.n_action_steps, replan_check if moving.any() else None,
                   progress=progress, description=config.name)
     timing = {
         "ms_per_chunk": 1000 * log.planning_s / max(1, log.planned_chunks),

@@ -75,7 +75,7 @@ class PolicyNode(Node):
         self.pushers: dict[float, np.ndarray] = {}
         self.last_stamp = -1.0
         self.last_setpoint: PointStamped | None = None
-        self.violations = self.plans = 0
+        self.violations = 0
         self.zone_change_time: float | None = None
         self.replan_latency_ms = float("nan")
         self.get_logger().info(
@@ -195,7 +195,6 @@ class PolicyNode(Node):
 
     def _after_plan(self) -> None:
         _step, _rows, plan = self.chunks.last_plan
-        self.plans += 1
         if self.zone_change_time is not None:
             self.replan_latency_ms = 1000 * (time.monotonic() - self.zone_change_time)
             self.zone_change_time = None
@@ -212,7 +211,7 @@ class PolicyNode(Node):
 
     def _publish_status(self, planning_ms: float) -> None:
         values = {"configuration": self.config.name, "violations": self.violations,
-                  "plans": self.plans, "planning_ms": f"{planning_ms:.1f}",
+                  "plans": self.chunks.planner_calls, "planning_ms": f"{planning_ms:.1f}",
                   "replan_latency_ms": f"{self.replan_latency_ms:.1f}",
                   "zones": len(self.zones)}
         status = DiagnosticStatus(level=DiagnosticStatus.OK, name="policy_node",

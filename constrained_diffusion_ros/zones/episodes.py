@@ -67,9 +67,6 @@ class EpisodeZones:
     def inflate(self, radius: float) -> EpisodeZones:
         return EpisodeZones([a.inflate(radius) for a in self.areas], self.assignment)
 
-    def area_of(self, episode: int) -> RestrictedArea:
-        return self.areas[int(self.assignment[episode])]
-
 
 def bounded_area(area: RestrictedArea, size: float) -> RestrictedArea:
     """The area plus everything outside the [0, size]^2 workspace.

@@ -198,6 +198,24 @@ def seeded_state(seed: int) -> np.ndarray:
     )
 
 
+def pusher_transition(n_substeps: int) -> np.ndarray:
+    """(n_substeps, 2, 3): entry k maps one axis's (position, velocity, setpoint) to its
+    (position, velocity) after k + 1 physics substeps with the setpoint held.
+
+    The pusher is kinematic: contacts never move it, so its PD law alone decides its path and
+    a controller can predict it exactly (see `_step_unchecked` for the law).
+    """
+    one = np.array([
+        [1.0 - DT * DT * K_P, DT * (1.0 - DT * K_V), DT * DT * K_P],
+        [-DT * K_P, 1.0 - DT * K_V, DT * K_P],
+        [0.0, 0.0, 1.0],
+    ])
+    powers = [one]
+    for _ in range(n_substeps - 1):
+        powers.append(one @ powers[-1])
+    return np.stack(powers)[:, :2]
+
+
 # --------------------------------------------------------------------------- simulator
 
 

@@ -107,26 +107,26 @@ def test_a_short_evaluation_runs_end_to_end(tmp_path: Path, tiny_policy: Diffusi
                                             capsys: pytest.CaptureFixture[str]) -> None:
     model, output = save_policy(tiny_policy, tmp_path / "model"), tmp_path / "report"
     code = evaluate.main([
-        "--model", str(model), "--scenarios", "center_0.2", "l_shape",
+        "--model", str(model), "--scenarios", "left_0.5", "l_shape",
         "--configs", "none", "projection", "--episodes", "2", "--steps", "16",
-        "--output", str(output), "--figure", "center_0.2", "projection"])
+        "--output", str(output), "--figure", "left_0.5", "projection"])
     assert code == 0
     for name in ("table.md", "results.csv", "results.json", "s_vs_r.png", "frames.png"):
         assert (output / name).is_file() and (output / name).stat().st_size > 0, name
     cells = json.loads((output / "results.json").read_text())
     assert sorted((c["scenario"], c["configuration"]) for c in cells) == [
-        ("center_0.2", "none"), ("center_0.2", "projection"),
-        ("l_shape", "none"), ("l_shape", "projection")]
+        ("l_shape", "none"), ("l_shape", "projection"),
+        ("left_0.5", "none"), ("left_0.5", "projection")]
     assert all(c["episodes"] == 2 for c in cells)
     assert all(c["r"] == 0 for c in cells if c["configuration"] == "projection")
-    # ... where the unconstrained policy does command setpoints inside (seeded: deterministic).
+    # ... where the unconstrained policy does command setpoints inside (half the workspace).
     assert sum(c["r"] for c in cells if c["configuration"] == "none") > 0
     assert all(0.0 <= c["s"] <= 1.0 for c in cells)
     with (output / "results.csv").open() as handle:
         assert len(list(csv.DictReader(handle))) == 4
     table = (output / "table.md").read_text()
-    assert "0.2 center" in table and "concave L" in table and "Projection" in table
-    assert "0.2 center" in capsys.readouterr().out
+    assert "0.5 left" in table and "concave L" in table and "Projection" in table
+    assert "0.5 left" in capsys.readouterr().out
 
 
 def test_an_unknown_scenario_is_a_clear_error(tmp_path: Path,

@@ -1,8 +1,9 @@
 """Reproduce the paper's Table I and our extensions in one command: `evaluate --help`.
 
-Every configuration runs its scenarios x seeds as one batch of episodes (25 seeded scenes from
-seed 100000, 200 action steps each). Writes table.md, results.csv/json, s_vs_r.png and
-frames.png to the output directory and prints the table.
+Configurations that share a sampler run all their scenarios x seeds as one batch of episodes
+(25 seeded scenes from seed 100000, 200 action steps each); a configuration that ignores the
+zones runs its seeds once and is scored against every scenario. Writes table.md,
+results.csv/json, s_vs_r.png and frames.png to the output directory and prints the table.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import torch
 from tqdm import tqdm
 
 from constrained_diffusion_ros.evaluation import report
-from constrained_diffusion_ros.evaluation.runner import CellResult, evaluate_configuration
+from constrained_diffusion_ros.evaluation.runner import CellResult, evaluate_configurations
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.policy.weights import load_policy
@@ -41,7 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
                         metavar=("SCENARIO", "CONFIG"), help="cell drawn in frames.png")
     parser.add_argument("--reuse", action="store_true",
                         help="keep the cells already in OUTPUT/results.json and run only the "
-                             "missing ones (after adding a configuration, say)")
+                             "missing ones (after adding a configuration or a scenario, say)")
     parser.add_argument("--config-dir", default=str(config_dir()),
                         help="directory with scenarios.yaml and configurations.yaml")
     return parser
@@ -74,24 +75,30 @@ def run(args: argparse.Namespace) -> int:
         rows = json.loads((output / "results.json").read_text())
         previous = {(r["scenario"], r["configuration"]): CellResult(**r) for r in rows}
     cells, started, figure, reused = [], time.monotonic(), None, 0
-    for config in tqdm(configs, desc="configurations", unit="config"):
+    pending: dict[tuple, list] = {}  # sampler key -> [(configuration, its scenarios)]
+    for config in configs:
         chosen = [s for s in scenarios if s.paper or config.scenarios == "all"]
-        if not chosen:
-            continue
-        if all((s.name, config.name) in previous for s in chosen):
-            cells += [previous[(s.name, config.name)] for s in chosen]
-            reused += len(chosen)
-            continue
+        kept = [previous[key] for s in chosen if (key := (s.name, config.name)) in previous]
+        cells, reused = cells + kept, reused + len(kept)
+        missing = [s for s in chosen if (s.name, config.name) not in previous]
+        if missing:
+            pending.setdefault(config.sampler_key, []).append((config, missing))
+    for group in tqdm(pending.values(), desc="batches", unit="batch"):
         t0 = time.monotonic()
-        results, log = evaluate_configuration(policy, config, chosen, seeds, args.steps)
+        results, log, first_rows = evaluate_configurations(
+            policy, [c for c, _ in group], [chosen for _, chosen in group], seeds, args.steps)
         cells += results
-        names = [s.name for s in chosen]
-        tqdm.write(f"{config.name}: {len(chosen)} scenarios x {len(seeds)} episodes in "
+        tqdm.write(f"{', '.join(c.name for c, _ in group)}: {len(results)} cells x "
+                   f"{len(seeds)} episodes, batch of {len(log.seeds)}, in "
                    f"{time.monotonic() - t0:.0f} s")
-        if config.name == args.figure[1] and args.figure[0] in names:
-            index = names.index(args.figure[0])
-            figure = (log, index * len(seeds), chosen[index], config)
+        if tuple(args.figure) in first_rows:
+            scenario = next(s for s in scenarios if s.name == args.figure[0])
+            config = next(c for c, _ in group if c.name == args.figure[1])
+            figure = (log, first_rows[tuple(args.figure)], scenario, config)
     wall = time.monotonic() - started
+    order = {(s.name, c.name): (i, j) for i, c in enumerate(configs)
+             for j, s in enumerate(scenarios)}
+    cells.sort(key=lambda cell: order[(cell.scenario, cell.configuration)])
     paper_cells = sum(1 for c in cells if c.scenario in {s.name for s in scenarios if s.paper}
                       and c.configuration in {k.name for k in configs if k.paper})
     table = report.markdown_table(cells, scenarios, configs, report.load_paper_table())

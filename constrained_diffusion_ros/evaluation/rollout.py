@@ -18,6 +18,9 @@ Planner = Callable[[torch.Tensor, int, np.ndarray], torch.Tensor]
 # Which episodes must replan now, from (chunk (B, n, 2), next index (B,), plan step (B,), step):
 # e.g. those whose zones changed so that the rest of their chunk would violate them.
 ReplanCheck = Callable[[np.ndarray, np.ndarray, np.ndarray, int], np.ndarray]
+# The last word on the (B, 2) setpoints about to be executed, from (pusher positions (B, 2),
+# setpoints, step): e.g. a shield that keeps the pusher's path out of the zones.
+SetpointGuard = Callable[[np.ndarray, np.ndarray, int], np.ndarray]
 
 
 class ObservationHistory:
@@ -70,12 +73,14 @@ class RolloutLog:
 class ChunkExecutor:
     """Receding-horizon execution for a batch of episodes: plan a chunk, execute
     `n_action_steps` of its waypoints from `first_executed` on (the reference's convention),
-    replan when they run out or when `replan_check` says so. The evaluation and the policy node
-    both drive this, so they replan alike and consume the same random numbers."""
+    replan when they run out or when `replan_check` says so; `guard` has the last word on each
+    setpoint. The evaluation and the policy node both drive this, so they replan alike and
+    consume the same random numbers."""
 
     def __init__(self, planner: Planner, n_obs_steps: int = 2, first_executed: int = 1,
-                 n_action_steps: int = 8, replan_check: ReplanCheck | None = None) -> None:
-        self.planner, self.replan_check = planner, replan_check
+                 n_action_steps: int = 8, replan_check: ReplanCheck | None = None,
+                 guard: SetpointGuard | None = None) -> None:
+        self.planner, self.replan_check, self.guard = planner, replan_check, guard
         self.n_obs_steps, self.first_executed = n_obs_steps, first_executed
         self.n_action_steps = n_action_steps
         self.history: ObservationHistory | None = None
@@ -112,17 +117,20 @@ class ChunkExecutor:
             self.next_index[rows], self.plan_step[rows] = 0, step
         action = self.chunk[np.arange(len(self.chunk)), self.next_index]
         self.next_index += 1
+        if self.guard is not None:  # positions as the planner saw them (float32)
+            action = self.guard(self.history.frames[:, -1, -2:].astype(float), action, step)
         return action
 
 
 def rollout(planner: Planner, seeds: Sequence[int], n_steps: int = 200, n_obs_steps: int = 2,
             first_executed: int = 1, n_action_steps: int = 8,
-            replan_check: ReplanCheck | None = None, progress: bool = False,
-            description: str = "rollout") -> RolloutLog:
+            replan_check: ReplanCheck | None = None, guard: SetpointGuard | None = None,
+            progress: bool = False, description: str = "rollout") -> RolloutLog:
     """Runs every seeded scene for `n_steps` control steps, all episodes in one batch."""
     sims = PushTBatch(len(seeds))
     states = [sims.reset(list(seeds))]
-    executor = ChunkExecutor(planner, n_obs_steps, first_executed, n_action_steps, replan_check)
+    executor = ChunkExecutor(planner, n_obs_steps, first_executed, n_action_steps, replan_check,
+                             guard)
     commanded, coverages = [], []
     with tqdm(total=n_steps, desc=description, unit="step", disable=not progress,
               leave=False) as bar:

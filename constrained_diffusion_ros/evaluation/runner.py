@@ -13,7 +13,7 @@ import torch
 from constrained_diffusion_ros.evaluation.rollout import RolloutLog, rollout
 from constrained_diffusion_ros.evaluation.scenarios import Scenario
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
-from constrained_diffusion_ros.sampling.constraints import ConstrainedPlanner, ConstraintConfig
+from constrained_diffusion_ros.sampling.constraints import ConstraintConfig, MixedPlanner
 from constrained_diffusion_ros.zones.episodes import EpisodeZones
 from sim_bridge import AGENT_RADIUS
 
@@ -34,6 +34,7 @@ class CellResult:
     r_body: float  # steps whose pusher disc overlaps a zone
     path_crossings: float  # setpoint-to-setpoint segments that enter a zone from outside
     starts_inside: int  # episodes whose pusher disc overlaps a zone at the start
+    r_body_outside_starts: float | None  # r_body of the episodes not starting inside (None: none)
     ms_per_chunk: float  # planning wall time per episode-chunk (amortised over the batch)
     ms_per_call: float  # wall time of one batched planning call
     batch: int  # episodes per batched call in the steady state
@@ -64,7 +65,8 @@ def cell_metrics(log: RolloutLog, rows: np.ndarray, scenario: Scenario) -> dict[
         start = torch.from_numpy(previous[:, columns])
         crossing[:, columns] = (area.crosses(start, cmd) & ~area.contains(start)).numpy()
     start = torch.from_numpy(pusher[:, 0])
-    starts_inside = int((zones[0].signed_distance(start) < AGENT_RADIUS).sum())
+    started_inside = (zones[0].signed_distance(start) < AGENT_RADIUS).numpy()
+    outside_starts = body[~started_inside].sum(axis=1)
     return {
         "s": float(log.best_score[rows].mean()),
         "final_score": float(log.final_score[rows].mean()),
@@ -72,52 +74,123 @@ def cell_metrics(log: RolloutLog, rows: np.ndarray, scenario: Scenario) -> dict[
         "r": float(inside.sum(axis=1).mean()),
         "r_body": float(body.sum(axis=1).mean()),
         "path_crossings": float(crossing.sum(axis=1).mean()),
-        "starts_inside": starts_inside,
+        "starts_inside": int(started_inside.sum()),
+        "r_body_outside_starts": (float(outside_starts.mean())
+                                  if len(outside_starts) else None),
     }
 
 
-def evaluate_configuration(policy: DiffusionPolicy, config: ConstraintConfig,
-                           scenarios: Sequence[Scenario], seeds: Sequence[int] = DEFAULT_SEEDS,
-                           n_steps: int = 200, noise_seed: int = 0, progress: bool = True
-                           ) -> tuple[list[CellResult], RolloutLog]:
-    """All scenarios x seeds of one configuration as one batch of episodes."""
-    planner = ConstrainedPlanner(policy, config)
+@dataclass(frozen=True)
+class Block:
+    """Consecutive rows of a batch: the seeds of one configuration, scored against
+    `scenarios`. A configuration that ignores zones plans the same whatever they are, so one
+    block of its episodes serves all its scenarios."""
+
+    config: int  # index into the configurations of the batch
+    scenarios: tuple[int, ...]  # indices into the scenarios of the batch
+    start: int
+    stop: int
+
+    @property
+    def rows(self) -> np.ndarray:
+        return np.arange(self.start, self.stop)
+
+
+def _layout(configs: Sequence[ConstraintConfig], scenario_lists: Sequence[Sequence[Scenario]],
+            scenarios: list[Scenario], n_seeds: int) -> list[Block]:
+    blocks: list[Block] = []
+    for index, (config, chosen) in enumerate(zip(configs, scenario_lists, strict=True)):
+        indices = [scenarios.index(s) for s in chosen]
+        groups = [tuple(indices)] if not config.constrains else [(i,) for i in indices]
+        for group in groups:
+            start = blocks[-1].stop if blocks else 0
+            blocks.append(Block(index, group, start, start + n_seeds))
+    return blocks
+
+
+def evaluate_configurations(policy: DiffusionPolicy, configs: Sequence[ConstraintConfig],
+                            scenario_lists: Sequence[Sequence[Scenario]],
+                            seeds: Sequence[int] = DEFAULT_SEEDS, n_steps: int = 200,
+                            noise_seed: int = 0, progress: bool = True
+                            ) -> tuple[list[CellResult], RolloutLog, dict[tuple[str, str], int]]:
+    """Configurations that share a sampler (one `sampler_key`), each on its scenarios x seeds,
+    all as one batch of episodes. Returns the cells, the log and, per (scenario, configuration),
+    the log row of its first episode."""
+    mixed = MixedPlanner(policy, configs)
+    scenarios = list(dict.fromkeys(s for chosen in scenario_lists for s in chosen))
+    blocks = _layout(configs, scenario_lists, scenarios, len(seeds))
+    owner = np.concatenate([np.full(b.stop - b.start, b.config) for b in blocks])
+    scenario_of_row = np.concatenate([np.full(b.stop - b.start, b.scenarios[0]) for b in blocks])
+    moving = np.array([scenarios[i].moving for i in scenario_of_row]) & np.array(
+        [configs[i].constrains for i in owner])
     generator = torch.Generator().manual_seed(noise_seed)
-    assignment = np.repeat(np.arange(len(scenarios)), len(seeds))
-    moving = np.array([scenarios[a].moving for a in assignment])
     horizons = policy.config
 
     def area_at(step: int, rows: np.ndarray) -> EpisodeZones:
-        return EpisodeZones([s.zones_at(step) for s in scenarios], assignment[rows])
+        return EpisodeZones([s.zones_at(step) for s in scenarios], scenario_of_row[rows])
+
+    def by_config(rows: np.ndarray):
+        """(configuration index, its planner, the positions in `rows` that are its)."""
+        for index, planner in enumerate(mixed.planners):
+            mine = np.nonzero(owner[rows] == index)[0]
+            if len(mine) and planner.config.constrains:
+                yield index, planner, mine
 
     def plan(obs: torch.Tensor, step: int, rows: np.ndarray) -> torch.Tensor:
-        return planner.plan(obs, area_at(step, rows) if config.constrains else None, generator)
+        areas: list = [None] * len(configs)
+        for index, _planner, mine in by_config(rows):
+            areas[index] = area_at(step, rows[mine])
+        return mixed.plan(obs, areas, owner[rows], generator)
 
     def replan_check(chunk: np.ndarray, next_index: np.ndarray, plan_step: np.ndarray,
                      step: int) -> np.ndarray:
         """Moving zones: replan where the rest of the chunk now lies in the (effective) zone."""
         due = np.zeros(len(chunk), dtype=bool)
         rows = np.nonzero(moving & (plan_step < step) & (next_index < chunk.shape[1]))[0]
-        if not config.constrains or len(rows) == 0:
-            return due
-        area = planner.effective_area(area_at(step, rows))
-        inside = area.contains(torch.from_numpy(chunk[rows])).numpy()
-        remaining = np.arange(chunk.shape[1])[None] >= next_index[rows, None]
-        due[rows] = (inside & remaining).any(axis=1)
+        for _index, planner, mine in by_config(rows):
+            chosen = rows[mine]
+            area = planner.effective_area(area_at(step, chosen))
+            inside = area.contains(torch.from_numpy(chunk[chosen])).numpy()
+            remaining = np.arange(chunk.shape[1])[None] >= next_index[chosen, None]
+            due[chosen] = (inside & remaining).any(axis=1)
         return due
 
-    episode_seeds = [seed for _ in scenarios for seed in seeds]
+    def guard(positions: np.ndarray, setpoints: np.ndarray, step: int) -> np.ndarray:
+        out = setpoints.copy()
+        for _index, planner, rows in by_config(np.arange(len(owner))):
+            if planner.shield is not None:
+                out[rows] = planner.guard(area_at(step, rows), positions[rows], setpoints[rows],
+                                          step)
+        return out
+
+    episode_seeds = [seed for _ in blocks for seed in seeds]
+    shielded = any(c.shield for c in configs)
     log = rollout(plan, episode_seeds, n_steps, horizons.n_obs_steps, horizons.first_executed,
                   horizons.n_action_steps, replan_check if moving.any() else None,
-                  progress=progress, description=config.name)
+                  guard if shielded else None, progress=progress,
+                  description=", ".join(c.name for c in configs))
     timing = {
         "ms_per_chunk": 1000 * log.planning_s / max(1, log.planned_chunks),
         "ms_per_call": 1000 * log.planning_s / max(1, log.planner_calls),
         "batch": len(episode_seeds),
     }
-    cells = [
-        CellResult(scenario=scenario.name, configuration=config.name, episodes=len(seeds),
-                   **cell_metrics(log, np.nonzero(assignment == index)[0], scenario), **timing)
-        for index, scenario in enumerate(scenarios)
-    ]
+    cells, first_rows = [], {}
+    for block in blocks:
+        config = configs[block.config]
+        for index in block.scenarios:
+            scenario = scenarios[index]
+            metrics = cell_metrics(log, block.rows, scenario)
+            cells.append(CellResult(scenario=scenario.name, configuration=config.name,
+                                    episodes=len(seeds), **metrics, **timing))
+            first_rows[(scenario.name, config.name)] = block.start
+    return cells, log, first_rows
+
+
+def evaluate_configuration(policy: DiffusionPolicy, config: ConstraintConfig,
+                           scenarios: Sequence[Scenario], seeds: Sequence[int] = DEFAULT_SEEDS,
+                           n_steps: int = 200, noise_seed: int = 0, progress: bool = True
+                           ) -> tuple[list[CellResult], RolloutLog]:
+    """One configuration on its scenarios x seeds, as one batch."""
+    cells, log, _ = evaluate_configurations(policy, [config], [scenarios], seeds, n_steps,
+                                            noise_seed, progress)
     return cells, log

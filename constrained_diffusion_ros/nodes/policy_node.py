@@ -100,7 +100,7 @@ class PolicyNode(Node):
         self.planner = ConstrainedPlanner(self.policy, self.config)
         c = self.policy.config
         self.chunks = ChunkExecutor(self._plan, c.n_obs_steps, c.first_executed,
-                                      c.n_action_steps, self._must_replan)
+                                    c.n_action_steps, self._must_replan, self._guard)
         self.version_at_plan = -1
 
     def _on_parameters(self, parameters) -> SetParametersResult:
@@ -125,6 +125,9 @@ class PolicyNode(Node):
     def _plan(self, obs: torch.Tensor, step: int, rows: np.ndarray) -> torch.Tensor:
         self.version_at_plan = self.zones.version
         return self.planner.plan(obs, self._area(), self.generator)
+
+    def _guard(self, positions: np.ndarray, setpoints: np.ndarray, step: int) -> np.ndarray:
+        return self.planner.guard(self._area(), positions, setpoints, step)
 
     def _must_replan(self, chunk, next_index, plan_step, step) -> np.ndarray:
         """Zones changed since the plan and the rest of the chunk would enter them."""

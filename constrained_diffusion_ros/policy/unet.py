@@ -88,8 +88,9 @@ class ConditionalUnet1D(nn.Module):
     def forward(self, sample: torch.Tensor, steps: torch.Tensor,
                 global_cond: torch.Tensor) -> torch.Tensor:
         x = sample.transpose(1, 2)
-        steps = steps.expand(x.shape[0]) if steps.ndim else steps.reshape(1).expand(x.shape[0])
-        cond = torch.cat([self.step_encoder(steps), global_cond], dim=-1)
+        # Sampling gives one step for the whole batch: embed it once, not once per row.
+        embedded = self.step_encoder(steps.reshape(-1)).expand(x.shape[0], -1)
+        cond = torch.cat([embedded, global_cond], dim=-1)
         skips = []
         for first, second, downsample in self.down:
             x = second(first(x, cond), cond)

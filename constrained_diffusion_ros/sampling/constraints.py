@@ -1,11 +1,14 @@
 """Constraint configurations (from `config/configurations.yaml`) and the planner that applies
-one: it turns an observation history and a restricted area into a constrained action chunk."""
+one: it turns an observation history and a restricted area into a constrained action chunk, and
+(with the shield) checks each executed setpoint against the pusher's predicted path."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
 
+import numpy as np
 import torch
 import yaml
 
@@ -13,10 +16,12 @@ from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.sampling.hooks import (
     FinalProjection,
     GradientPush,
+    OnRows,
     PathRepair,
     Resampling,
 )
 from constrained_diffusion_ros.sampling.sampler import DenoisingSampler, SampleHook
+from constrained_diffusion_ros.sampling.shield import PusherShield
 from constrained_diffusion_ros.zones.episodes import bounded_area, inflate_area
 from constrained_diffusion_ros.zones.geometry import RestrictedArea
 from sim_bridge import AGENT_RADIUS, WORKSPACE_SIZE
@@ -34,6 +39,7 @@ class ConstraintConfig:
     margin: float = 1.0  # clearance (px) left by projection and path repair
     inflate: bool = False  # grow zones by the pusher radius so its body stays out too
     path_repair: bool = False
+    shield: bool = False  # check each executed setpoint against the pusher's predicted path
     from_scratch: int = 0  # >0: no hooks; draw this many whole chunks, keep the first that fits
     sampler: str = "ddpm"
     denoising_steps: int | None = None
@@ -46,6 +52,9 @@ class ConstraintConfig:
                              "must be non-negative")
         if self.from_scratch and (self.resample or self.push or self.path_repair):
             raise ValueError(f"configuration {self.name!r}: from_scratch replaces the hooks")
+        if self.shield and not self.inflate:
+            raise ValueError(f"configuration {self.name!r}: the shield keeps the pusher's body "
+                             "out, so it needs inflate: true")
         if self.scenarios not in ("all", "paper"):
             raise ValueError(f"configuration {self.name!r}: scenarios must be all or paper")
         if self.sampler not in ("ddpm", "ddim"):
@@ -59,7 +68,12 @@ class ConstraintConfig:
     def constrains(self) -> bool:
         """Whether the zones change what it plans (the "None" rows ignore them)."""
         return bool(self.resample or self.push or self.project or self.path_repair
-                    or self.from_scratch)
+                    or self.from_scratch or self.shield)
+
+    @property
+    def sampler_key(self) -> tuple:
+        """Configurations with equal keys can share one batch of network calls."""
+        return (self.sampler, self.denoising_steps, self.from_scratch and self.name)
 
 
 def load_configurations(path: str | Path) -> dict[str, ConstraintConfig]:
@@ -82,6 +96,7 @@ class ConstrainedPlanner:
     def __init__(self, policy: DiffusionPolicy, config: ConstraintConfig) -> None:
         self.policy, self.config = policy, config
         self.sampler = DenoisingSampler(policy, config.sampler, config.denoising_steps)
+        self.shield = PusherShield() if config.shield else None
         self._inflated: tuple[RestrictedArea, RestrictedArea] | None = None
 
     def effective_area(self, area: RestrictedArea) -> RestrictedArea:
@@ -105,6 +120,14 @@ class ConstrainedPlanner:
         if c.path_repair:
             hooks.append(PathRepair(area, pusher, first, c.margin))
         return hooks
+
+    def guard(self, area: RestrictedArea | None, positions: np.ndarray, setpoints: np.ndarray,
+              step: int) -> np.ndarray:
+        """(B, 2) setpoints about to be executed -> the ones the shield lets through."""
+        if self.shield is None:
+            return setpoints
+        effective = None if area is None else self.effective_area(area)
+        return self.shield(effective, positions, setpoints, step)
 
     def plan(self, obs_history: torch.Tensor, area: RestrictedArea | None,
              generator: torch.Generator | None = None) -> torch.Tensor:
@@ -132,3 +155,30 @@ class ConstrainedPlanner:
         order = inside * n + torch.arange(n)
         chosen = chunks[torch.arange(batch), order.argmin(dim=1)]
         return area.project_out(chosen, self.config.margin) if self.config.project else chosen
+
+
+class MixedPlanner:
+    """Configurations with one `sampler_key`, planned as one batch: a single network call per
+    denoising step for all their episodes, each configuration's hooks on its own rows. On two
+    CPU cores a batch of 600 costs 0.33 ms per sample against 0.9 ms for a batch of 25."""
+
+    def __init__(self, policy: DiffusionPolicy, configs: Sequence[ConstraintConfig]) -> None:
+        if len({c.sampler_key for c in configs}) != 1:
+            raise ValueError("a mixed batch needs configurations with one sampler and no "
+                             "from-scratch sampling among several")
+        self.planners = [ConstrainedPlanner(policy, c) for c in configs]
+
+    def plan(self, obs_history: torch.Tensor, areas: Sequence[RestrictedArea | None],
+             owner: np.ndarray, generator: torch.Generator | None = None) -> torch.Tensor:
+        """Row b belongs to configuration `owner[b]`, whose rows are constrained by
+        `areas[owner[b]]` (a batch-aware area over those rows, or None)."""
+        if len(self.planners) == 1:
+            return self.planners[0].plan(obs_history, areas[0], generator)
+        hooks: list[SampleHook] = []
+        for index, planner in enumerate(self.planners):
+            rows = torch.from_numpy(np.nonzero(owner == index)[0])
+            if len(rows) and areas[index] is not None:
+                area = planner.effective_area(areas[index])
+                pusher = obs_history[rows, -1, -2:]
+                hooks += [OnRows(hook, rows) for hook in planner.hooks(area, pusher)]
+        return self.planners[0].sampler.sample(obs_history, generator, hooks)

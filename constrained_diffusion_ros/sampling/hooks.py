@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from constrained_diffusion_ros.sampling.sampler import DenoisingStep
+from constrained_diffusion_ros.sampling.sampler import DenoisingStep, SampleHook
 from constrained_diffusion_ros.zones.geometry import RestrictedArea
 
 
@@ -101,3 +101,17 @@ class PathRepair:
             path = path.clone()
             path[rows, cols] = seg_start + keep[:, None] * (seg_end - seg_start)
         return torch.cat([head, path], dim=1)
+
+
+@dataclass
+class OnRows:
+    """Runs `hook` on some rows of the batch only: configurations that share a sampler share
+    its network calls, each with its own hooks on its own episodes."""
+
+    hook: SampleHook
+    rows: Tensor  # (R,) row indices
+
+    def __call__(self, sample: Tensor, step: DenoisingStep) -> Tensor:
+        out = sample.clone()
+        out[self.rows] = self.hook(sample[self.rows], step)
+        return out

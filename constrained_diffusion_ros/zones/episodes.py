@@ -68,6 +68,14 @@ class EpisodeZones:
         return EpisodeZones([a.inflate(radius) for a in self.areas], self.assignment)
 
 
+def select_rows(area: RestrictedArea, rows: Tensor) -> RestrictedArea:
+    """The area that answers for rows `rows` of a batch: a batch-aware area keeps those rows'
+    zones; any other area is the same for every row."""
+    if isinstance(area, EpisodeZones):
+        return EpisodeZones(area.areas, area.assignment[rows])
+    return area
+
+
 def bounded_area(area: RestrictedArea, size: float) -> RestrictedArea:
     """The area plus everything outside the [0, size]^2 workspace.
 

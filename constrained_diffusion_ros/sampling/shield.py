@@ -1,0 +1,112 @@
+"""A last check on each executed setpoint: will the pusher's body stay out of the zones on its
+way there?
+
+Commanded setpoints outside the inflated zones are not enough: the pusher follows a PD law,
+carries its velocity into the next setpoint and cuts corners, so its disc can dip into a zone
+between setpoints. The pusher is kinematic, so its path is known exactly from its position,
+velocity and setpoint (`sim_bridge.pusher_transition`). The shield accepts a setpoint only if
+holding it from now on keeps the pusher centre outside the area inflated by its radius; else it
+takes the largest step from the last accepted setpoint towards it that does. The last accepted
+setpoint was itself checked from the previous state, so a safe choice exists as long as the
+zones do not change under the pusher (a shield in the sense of safe reinforcement learning).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from constrained_diffusion_ros.zones.episodes import select_rows
+from constrained_diffusion_ros.zones.geometry import RestrictedArea
+from sim_bridge import SIM_HZ, SUBSTEPS, pusher_transition
+
+# Fractions of the way from the last accepted setpoint to the planned one, tried largest first.
+FRACTIONS = (0.75, 0.5, 0.25, 0.0)  # after the whole way (1.0) was refused
+
+
+class PusherShield:
+    """Filters (B, 2) setpoints for a batch of pushers; `area` is already inflated by the
+    pusher radius, so a pusher centre outside it means a disc outside the zones."""
+
+    def __init__(self, horizon_s: float = 0.6, margin: float = 0.5, escape: float = 20.0) -> None:
+        substeps = max(SUBSTEPS, round(horizon_s * SIM_HZ))
+        coefficients = pusher_transition(substeps)  # (H, 2, 3)
+        self.path = torch.from_numpy(coefficients[:, 0])  # position after each substep
+        self.control_step = coefficients[SUBSTEPS - 1]  # (2, 3) one control step
+        self.fractions = torch.tensor(FRACTIONS, dtype=torch.float64)
+        self.reach = (self.path[:, 2].abs().max(), self.path[:, 1].abs().max())
+        self.margin, self.escape = margin, escape
+        self.reset()
+
+    def reset(self) -> None:
+        self.last: tuple[int, np.ndarray, np.ndarray] | None = None  # step, position, setpoint
+        self.corrected = 0  # setpoints changed since the reset
+
+    def _previous(self, position: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray]:
+        """(velocity, setpoint in force) now. The velocity comes from the last two positions
+        and the setpoint between them (the PD law is linear: per axis one equation, one unknown,
+        the earlier velocity). Without the previous step (a new episode: the simulator resets
+        with the pusher at rest) the pusher is taken at rest, holding its position."""
+        if self.last is None or self.last[0] != step - 1 or len(self.last[1]) != len(position):
+            return np.zeros_like(position), position
+        _, last_position, last_setpoint = self.last
+        (p_p, p_v, p_u), (v_p, v_v, v_u) = self.control_step
+        before = (position - p_p * last_position - p_u * last_setpoint) / p_v
+        return v_p * last_position + v_v * before + v_u * last_setpoint, last_setpoint
+
+    def __call__(self, area: RestrictedArea | None, position: np.ndarray, setpoint: np.ndarray,
+                 step: int) -> np.ndarray:
+        """The setpoints to execute at control step `step` (consecutive calls, consecutive
+        steps); with no area they pass unchanged, but the history is kept."""
+        position, setpoint = np.asarray(position, float), np.asarray(setpoint, float)
+        if area is None:
+            self.last = (step, position, setpoint)
+            return setpoint
+        velocity, held = self._previous(position, step)
+        p, v = torch.from_numpy(position), torch.from_numpy(velocity)
+        start, goal = torch.from_numpy(held), torch.from_numpy(setpoint)
+        # Only pushers that could reach the area within the horizon need their paths checked:
+        # the path leaves p by at most c_max |u - p| + b_max |v| (p_k - p = c_k (u - p) + b_k v).
+        reach = (self.reach[0] * torch.maximum((goal - p).norm(dim=-1), (start - p).norm(dim=-1))
+                 + self.reach[1] * v.norm(dim=-1))
+        near = torch.nonzero(area.signed_distance(p.float()) < reach + self.margin).flatten()
+        chosen = goal.clone()
+        if len(near):
+            chosen[near] = self._choose(select_rows(area, near), p[near], v[near], start[near],
+                                        goal[near])
+        result = chosen.numpy()
+        self.corrected += int((chosen != goal).any(dim=-1).sum())
+        self.last = (step, position, result)
+        return result
+
+    def _safe(self, area: RestrictedArea, p: Tensor, v: Tensor, candidates: Tensor) -> Tensor:
+        """(N, F) whether holding candidate (N, F, 2) keeps a pusher at p moving at v clear of
+        the area for the whole horizon (checked after every physics substep)."""
+        a, b, c = self.path.unbind(-1)
+        paths = (a[:, None] * p[:, None, None] + b[:, None] * v[:, None, None]
+                 + c[:, None] * candidates[:, :, None])  # (N, F, H, 2)
+        count, n_candidates, horizon, _ = paths.shape
+        clearance = area.signed_distance(paths.reshape(count, -1, 2).float())
+        return (clearance.reshape(count, n_candidates, horizon) >= self.margin).all(dim=-1)
+
+    def _choose(self, area: RestrictedArea, p: Tensor, v: Tensor, start: Tensor,
+                goal: Tensor) -> Tensor:
+        """The largest safe step from `start` towards `goal` for pushers at p moving at v."""
+        chosen = goal.clone()
+        blocked = torch.nonzero(~self._safe(area, p, v, goal[:, None])[:, 0]).flatten()
+        if len(blocked) == 0:
+            return chosen
+        area, p, v = select_rows(area, blocked), p[blocked], v[blocked]
+        start, goal = start[blocked], goal[blocked]
+        candidates = start[:, None] + self.fractions[None, :, None] * (goal - start)[:, None]
+        safe = self._safe(area, p, v, candidates)
+        fallback = candidates[torch.arange(len(blocked)), safe.float().argmax(dim=1)]
+        # No safe candidate (it started inside, or a zone moved onto it): head for the nearest
+        # point `escape` px clear, so a zone still coming does not catch it at once.
+        stuck = ~safe.any(dim=1)
+        if stuck.any():  # the area may be batch-aware (row b, zones b): query every row
+            escape = area.project_out(p.float(), self.escape).double()
+            fallback = torch.where(stuck[:, None], escape, fallback)
+        chosen[blocked] = fallback
+        return chosen

@@ -13,10 +13,11 @@ import torch
 
 from constrained_diffusion_ros.evaluation import evaluate
 from constrained_diffusion_ros.evaluation.rollout import RolloutLog
-from constrained_diffusion_ros.evaluation.runner import cell_metrics
+from constrained_diffusion_ros.evaluation.runner import cell_metrics, evaluate_configurations
 from constrained_diffusion_ros.evaluation.scenarios import Scenario, load_scenarios
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.weights import save_policy
+from constrained_diffusion_ros.sampling.constraints import ConstraintConfig
 from sim_bridge import WORKSPACE_SIZE
 
 W = WORKSPACE_SIZE
@@ -99,6 +100,23 @@ def test_cell_metrics_follow_a_moving_zone(scenarios: dict[str, Scenario]) -> No
     assert sum(per_step) == 17
     assert metrics["r"] == 17
     assert metrics["r_body"] == 0
+
+
+def test_configurations_share_one_batch_and_zone_blind_ones_run_their_seeds_once(
+        tiny_policy: DiffusionPolicy, scenarios: dict[str, Scenario]) -> None:
+    blind = ConstraintConfig("blind", sampler="ddim", denoising_steps=2)
+    projected = ConstraintConfig("projected", sampler="ddim", denoising_steps=2, project=True)
+    chosen = [scenarios["left_0.5"], scenarios["center_0.2"]]
+    cells, log, first_rows = evaluate_configurations(
+        tiny_policy, [blind, projected], [chosen, chosen], seeds=[100000, 100001], n_steps=4,
+        progress=False)
+    assert log.seeds == [100000, 100001] * 3  # blind once, projected once per scenario
+    assert first_rows == {("left_0.5", "blind"): 0, ("center_0.2", "blind"): 0,
+                          ("left_0.5", "projected"): 2, ("center_0.2", "projected"): 4}
+    assert [(c.scenario, c.configuration, c.batch) for c in cells] == [
+        ("left_0.5", "blind", 6), ("center_0.2", "blind", 6),
+        ("left_0.5", "projected", 6), ("center_0.2", "projected", 6)]
+    assert all(c.r == 0 for c in cells if c.configuration == "projected")
 
 
 # -- The command ---------------------------------------------------------------------------------

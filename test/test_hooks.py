@@ -17,6 +17,7 @@ from constrained_diffusion_ros.policy.normalizer import MinMaxNormalizer
 from constrained_diffusion_ros.sampling.constraints import (
     ConstrainedPlanner,
     ConstraintConfig,
+    MixedPlanner,
     load_configurations,
 )
 from constrained_diffusion_ros.sampling.hooks import (
@@ -260,6 +261,28 @@ def test_planner_with_inflation_keeps_the_pusher_radius_clear(tiny_policy: Diffu
     assert CENTRE.signed_distance(inflated).min() >= AGENT_RADIUS
 
 
+def test_a_mixed_batch_constrains_each_configuration_on_its_own_rows(
+        tiny_policy: DiffusionPolicy) -> None:
+    mixed = MixedPlanner(tiny_policy, [ddim("none"), ddim("p", project=True)])
+    owner = np.array([0, 1, 0, 1, 0, 1])
+    areas = [None, EpisodeZones([CENTRE], [0, 0, 0])]
+    plan = mixed.plan(observations(6), areas, owner, torch.Generator().manual_seed(0))
+    plain = ConstrainedPlanner(tiny_policy, ddim("none")).plan(
+        observations(6), None, torch.Generator().manual_seed(0))
+    inside = CENTRE.contains(executed(tiny_policy, plan)).any(dim=1).numpy()
+    assert not inside[owner == 1].any()  # projected
+    free = torch.from_numpy(owner == 0)  # left alone, up to the hooks' pixel round trips
+    torch.testing.assert_close(plan[free], plain[free], atol=1e-3, rtol=0.0)
+    assert inside[owner == 0].any()
+
+
+def test_a_mixed_batch_needs_one_sampler(tiny_policy: DiffusionPolicy) -> None:
+    with pytest.raises(ValueError, match="one sampler"):
+        MixedPlanner(tiny_policy, [ddim("a"), ConstraintConfig("b", project=True)])
+    with pytest.raises(ValueError, match="one sampler"):
+        MixedPlanner(tiny_policy, [ddim("a"), ddim("b", from_scratch=4)])
+
+
 def test_from_scratch_keeps_the_candidate_with_fewest_violations(
         tiny_policy: DiffusionPolicy) -> None:
     n, obs = 8, observations(4)
@@ -332,7 +355,8 @@ def test_an_unknown_configuration_key_is_refused_by_name(tmp_path: Path) -> None
 
 
 @pytest.mark.parametrize("entry", [{"push": -1.0}, {"from_scratch": 4, "resample": True},
-                                   {"sampler": "euler"}, {"scenarios": "some"}])
+                                   {"sampler": "euler"}, {"scenarios": "some"},
+                                   {"shield": True}])
 def test_inconsistent_configurations_are_refused(entry: dict) -> None:
     with pytest.raises(ValueError, match="'bad'"):
         ConstraintConfig("bad", **entry)

@@ -47,6 +47,8 @@ SEED = 100000
 CONFIGURATIONS = {
     "fast_project": {"sampler": "ddim", "denoising_steps": 5, "project": True},
     "fast_none": {"sampler": "ddim", "denoising_steps": 5},
+    "fast_safe": {"sampler": "ddim", "denoising_steps": 5, "project": True, "inflate": True,
+                  "shield": True},
 }
 ZONE_ID = 7
 ZONE = ((0.0, 0.0), (512.0, 0.0), (512.0, 64.0), (0.0, 64.0))  # the top band, see above
@@ -288,12 +290,13 @@ def test_zone_from_another_process_obeyed_refused_and_removed(
 def test_trial_command_records_the_batched_evaluation(tiny_model, configurations_file, tmp_path):
     """`trial` end to end, checked against the ROS-free batched evaluation of the same episode.
 
-    left_0.5 / fast_project / seed 100019: the tiny policy scores s > 0 there and, unconstrained
-    (fast_none), commands setpoints inside the zone, so equal s and r = 0 are not vacuous."""
+    left_0.5 / fast_safe (projection, inflation, shield) / seed 100019: the tiny policy scores
+    s > 0 there and, unconstrained (fast_none), commands setpoints inside the zone, so equal s
+    and r = 0 are not vacuous; the shield corrects setpoints in both, identically."""
     scenario_name, seed, steps = "left_0.5", 100019, 16
     output = tmp_path / "trial"
     command = [sys.executable, "-m", "constrained_diffusion_ros.nodes.trial",
-               "--scenario", scenario_name, "--configuration", "fast_project",
+               "--scenario", scenario_name, "--configuration", "fast_safe",
                "--configurations-file", str(configurations_file), "--seed", str(seed),
                "--steps", str(steps), "--output", str(output), "--model", str(tiny_model),
                "--timeout", "60"]
@@ -325,13 +328,13 @@ def test_trial_command_records_the_batched_evaluation(tiny_model, configurations
     trial = json.loads(custom["trial_metadata"])
     assert trial == json.loads((output / "trial.json").read_text())
     assert (trial["scenario"], trial["configuration"], trial["seed"], trial["steps"]) == \
-        (scenario_name, "fast_project", seed, steps)
+        (scenario_name, "fast_safe", seed, steps)
     results = trial["results"]
 
     policy = load_policy(tiny_model)
     configurations = load_configurations(configurations_file)
     scenario = load_scenarios()[scenario_name]
-    (cell,), log = evaluate_configuration(policy, configurations["fast_project"], [scenario],
+    (cell,), log = evaluate_configuration(policy, configurations["fast_safe"], [scenario],
                                           seeds=[seed], n_steps=steps, progress=False)
     expected = cell.to_dict()
     assert results == {key: expected[key] for key in results}

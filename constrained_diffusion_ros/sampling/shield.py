@@ -43,7 +43,7 @@ class PusherShield:
         self.last: tuple[int, np.ndarray, np.ndarray] | None = None  # step, position, setpoint
         self.corrected = 0  # setpoints changed since the reset
 
-    def _previous(self, position: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray]:
+    def estimate(self, position: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray]:
         """(velocity, setpoint in force) now. The velocity comes from the last two positions
         and the setpoint between them (the PD law is linear: per axis one equation, one unknown,
         the earlier velocity). Without the previous step (a new episode: the simulator resets
@@ -63,7 +63,7 @@ class PusherShield:
         if area is None:
             self.last = (step, position, setpoint)
             return setpoint
-        velocity, held = self._previous(position, step)
+        velocity, held = self.estimate(position, step)
         p, v = torch.from_numpy(position), torch.from_numpy(velocity)
         start, goal = torch.from_numpy(held), torch.from_numpy(setpoint)
         # Only pushers that could reach the area within the horizon need their paths checked:

@@ -1,0 +1,109 @@
+"""The pusher shield: the PD model it relies on, its velocity estimate, and what it guarantees."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from constrained_diffusion_ros.sampling.shield import PusherShield
+from constrained_diffusion_ros.zones import ZoneSet, rectangle
+from constrained_diffusion_ros.zones.episodes import EpisodeZones
+from sim_bridge import AGENT_RADIUS, SUBSTEPS, PushTSim, pusher_transition
+
+ZONE = ZoneSet.from_polygons([rectangle(200, 200, 400, 400)])
+INFLATED = ZONE.inflate(AGENT_RADIUS)
+# Up the zone's left side, 15 px + 2 px out, then right along its top side: the pusher lags
+# its setpoints and cuts the corner between the two legs.
+AROUND_THE_CORNER = ([(183.0, max(183.0, 420.0 - 40 * t)) for t in range(1, 8)]
+                     + [(183.0 + 40 * t, 183.0) for t in range(1, 8)])
+START = [183.0, 420.0, 80.0, 60.0, 0.0]  # the T far away in a corner
+
+
+def drive(setpoints: list[tuple[float, float]], shield: PusherShield | None) -> np.ndarray:
+    """Pusher centre positions after each step; the shield (if any) sees what a policy sees:
+    float32 positions."""
+    sim, visited = PushTSim(), []
+    sim.set_state(START)
+    for step, setpoint in enumerate(setpoints):
+        target = np.array([setpoint])
+        if shield is not None:
+            position = sim.state[None, :2].astype(np.float32).astype(float)
+            target = shield(INFLATED, position, target, step)
+        visited.append(sim.step(target[0])[:2])
+    return np.array(visited)
+
+
+def clearance(points: np.ndarray) -> np.ndarray:
+    return ZONE.signed_distance(torch.from_numpy(points)).numpy()
+
+
+def test_the_pd_model_predicts_the_simulated_pusher_exactly() -> None:
+    sim = PushTSim()
+    sim.set_state(START)
+    one_step = pusher_transition(SUBSTEPS)[-1]
+    position, velocity = sim.state[:2], sim.agent_velocity
+    for setpoint in AROUND_THE_CORNER:
+        predicted = one_step @ np.stack([position, velocity, np.array(setpoint)])
+        sim.step(setpoint)
+        position, velocity = sim.state[:2], sim.agent_velocity
+        np.testing.assert_allclose(predicted, np.stack([position, velocity]), atol=1e-9)
+
+
+def test_the_velocity_comes_back_from_two_positions_and_the_setpoint() -> None:
+    sim, shield = PushTSim(), PusherShield()
+    sim.set_state(START)
+    for step, setpoint in enumerate(AROUND_THE_CORNER):
+        shield(None, sim.state[None, :2], np.array([setpoint]), step)
+        sim.step(setpoint)
+        velocity, held = shield.estimate(sim.state[None, :2], step + 1)
+        np.testing.assert_allclose(velocity[0], sim.agent_velocity, atol=1e-6)
+        np.testing.assert_array_equal(held[0], setpoint)
+
+
+def test_without_history_the_pusher_is_taken_at_rest_holding_its_position() -> None:
+    shield, position = PusherShield(), np.array([[100.0, 50.0]])
+    shield(None, position, np.array([[300.0, 300.0]]), step=4)
+    for step in (0, 7):  # a new episode, or a gap in the steps
+        velocity, held = shield.estimate(position, step)
+        assert np.all(velocity == 0) and np.array_equal(held, position)
+
+
+def test_setpoints_outside_the_inflated_zone_still_let_the_body_in() -> None:
+    """The case the shield exists for: every setpoint clear by 2 px, the body not."""
+    assert np.all(clearance(np.array(AROUND_THE_CORNER)) >= AGENT_RADIUS + 2)
+    assert clearance(drive(AROUND_THE_CORNER, None)).min() < AGENT_RADIUS - 5
+
+
+def test_the_shield_keeps_the_body_out_and_still_gets_there() -> None:
+    shield = PusherShield()
+    visited = drive(AROUND_THE_CORNER, shield)
+    assert clearance(visited).min() >= AGENT_RADIUS
+    assert shield.corrected > 0
+    unshielded_end = drive(AROUND_THE_CORNER, None)[-1]
+    assert np.linalg.norm(visited[-1] - unshielded_end) < 40  # slowed down, not stopped
+
+
+def test_far_from_zones_setpoints_pass_unchanged() -> None:
+    shield = PusherShield()
+    setpoints = np.array([[60.0, 60.0], [470.0, 80.0]])
+    out = shield(INFLATED, np.array([[50.0, 50.0], [460.0, 60.0]]), setpoints, 0)
+    np.testing.assert_array_equal(out, setpoints)
+    assert shield.corrected == 0
+
+
+def test_a_pusher_inside_heads_out_by_the_escape_clearance() -> None:
+    shield = PusherShield(escape=20.0)
+    inside = np.array([[205.0, 300.0]])  # 5 px into the zone: the body overlaps it
+    out = shield(INFLATED, inside, np.array([[300.0, 300.0]]), 0)
+    assert INFLATED.signed_distance(torch.from_numpy(out)).item() == pytest.approx(20.0, abs=0.1)
+    assert out[0, 0] < 200  # by the nearest way out: the left side
+
+
+def test_each_episode_is_shielded_from_its_own_zones() -> None:
+    free = ZoneSet.from_polygons([rectangle(0, 0, 10, 10)]).inflate(AGENT_RADIUS)
+    areas = EpisodeZones([INFLATED, free], [0, 1])
+    inside = np.array([[205.0, 300.0], [205.0, 300.0]])
+    target = np.array([[300.0, 300.0], [300.0, 300.0]])
+    out = PusherShield()(areas, inside, target, 0)
+    assert out[0, 0] < 200 and np.array_equal(out[1], target[1])

@@ -1,5 +1,6 @@
-"""Benchmark the constraint hooks: overhead per chunk against the plain sampler, and the
-from-scratch baseline's compute against the hooks' at equal violations.
+"""Benchmark the constraint hooks: overhead per chunk against the plain sampler, the
+from-scratch baseline's compute against the hooks' at equal violations, and the shield's cost
+per executed step.
 
 Open loop, on real observations: windows drawn from the demonstrations, every chunk planned
 with a scenario's zones; "violations" = executed waypoints (the 8 that run) inside the zone,
@@ -51,7 +52,7 @@ def main() -> None:
     c = policy.config
     windows = WindowSampler(demos, c.horizon, c.n_obs_steps, c.n_action_steps)
     ids = torch.randperm(len(windows), generator=torch.Generator().manual_seed(0))[: args.batch]
-    obs, _ = windows.batch(ids)
+    obs, actions = windows.batch(ids)
     area = load_scenarios()[args.scenario].zones_at(0)
 
     rows = [("plain DDPM 100", ConstraintConfig("none"))]
@@ -73,6 +74,18 @@ def main() -> None:
         ms, violations = measure(ConstrainedPlanner(policy, config), obs, area, args.repeats)
         reference = base.setdefault(config.sampler, ms)
         print(f"{label:<40} {ms:9.1f} {ms / reference:7.2f} {violations:17.3f}")
+
+    # The shield runs once per executed step, outside the denoising loop: its cost per step for
+    # the same pushers, each commanded to its demonstrated next action.
+    planner = ConstrainedPlanner(policy, ConstraintConfig("shield", inflate=True, shield=True))
+    positions = obs[:, -1, -2:].double().numpy()
+    setpoints = actions[:, c.first_executed].double().numpy()
+    started = time.perf_counter()
+    for step in range(args.repeats * 10):
+        planner.guard(area, positions, setpoints, step)
+    ms = 1000 * (time.perf_counter() - started) / (args.repeats * 10)
+    print(f"{'shield, per executed step':<40} {ms:9.1f} {'':>7} "
+          f"{planner.shield.corrected / (args.repeats * 10):17.3f} corrected setpoints/step")
 
 
 if __name__ == "__main__":

@@ -47,6 +47,7 @@ SEED = 100000
 CONFIGURATIONS = {
     "fast_project": {"sampler": "ddim", "denoising_steps": 5, "project": True},
     "fast_none": {"sampler": "ddim", "denoising_steps": 5},
+    "fast_inflated": {"sampler": "ddim", "denoising_steps": 5, "project": True, "inflate": True},
     "fast_safe": {"sampler": "ddim", "denoising_steps": 5, "project": True, "inflate": True,
                   "shield": True},
 }
@@ -292,7 +293,7 @@ def test_trial_command_records_the_batched_evaluation(tiny_model, configurations
 
     left_0.5 / fast_safe (projection, inflation, shield) / seed 100019: the tiny policy scores
     s > 0 there and, unconstrained (fast_none), commands setpoints inside the zone, so equal s
-    and r = 0 are not vacuous; the shield corrects setpoints in both, identically."""
+    and r = 0 are not vacuous; the shield changes setpoints there, in both alike."""
     scenario_name, seed, steps = "left_0.5", 100019, 16
     output = tmp_path / "trial"
     command = [sys.executable, "-m", "constrained_diffusion_ros.nodes.trial",
@@ -347,3 +348,6 @@ def test_trial_command_records_the_batched_evaluation(tiny_model, configurations
     (free,), _ = evaluate_configuration(policy, configurations["fast_none"], [scenario],
                                         seeds=[seed], n_steps=steps, progress=False)
     assert free.r > 0.0 and free.s != results["s"]
+    _, unshielded = evaluate_configuration(policy, configurations["fast_inflated"], [scenario],
+                                           seeds=[seed], n_steps=steps, progress=False)
+    assert (unshielded.commanded != log.commanded).any()  # the shield acted, in both alike

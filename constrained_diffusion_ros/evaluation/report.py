@@ -69,7 +69,7 @@ def plot_s_against_r(cells: Sequence[CellResult], configs: Sequence[ConstraintCo
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7.5, 4.5))
+    fig, ax = plt.subplots(figsize=(10, 4.8))
     markers = "os^vD<>ph*xP"
     for index, config in enumerate(configs):
         mine = [c for c in cells if c.configuration == config.name]
@@ -79,7 +79,8 @@ def plot_s_against_r(cells: Sequence[CellResult], configs: Sequence[ConstraintCo
     ax.set(xlabel="r: executed steps commanded inside a zone (mean per episode)",
            ylabel="s: mean best score", title="Score against violations, every cell")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="lower left", ncol=2)
+    # Beside the axes: most cells with r = 0 sit at the left edge, where a legend would hide them.
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -4,7 +4,7 @@ path crossings, planning time)."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -13,7 +13,11 @@ import torch
 from constrained_diffusion_ros.evaluation.rollout import RolloutLog, rollout
 from constrained_diffusion_ros.evaluation.scenarios import Scenario
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
-from constrained_diffusion_ros.sampling.constraints import ConstraintConfig, MixedPlanner
+from constrained_diffusion_ros.sampling.constraints import (
+    ConstrainedPlanner,
+    ConstraintConfig,
+    MixedPlanner,
+)
 from constrained_diffusion_ros.zones.episodes import EpisodeZones
 from sim_bridge import AGENT_RADIUS
 
@@ -129,8 +133,8 @@ def evaluate_configurations(policy: DiffusionPolicy, configs: Sequence[Constrain
     def area_at(step: int, rows: np.ndarray) -> EpisodeZones:
         return EpisodeZones([s.zones_at(step) for s in scenarios], scenario_of_row[rows])
 
-    def by_config(rows: np.ndarray):
-        """(configuration index, its planner, the positions in `rows` that are its)."""
+    def by_config(rows: np.ndarray) -> Iterator[tuple[int, ConstrainedPlanner, np.ndarray]]:
+        """(index, planner, positions in `rows` that are its) per constraining configuration."""
         for index, planner in enumerate(mixed.planners):
             mine = np.nonzero(owner[rows] == index)[0]
             if len(mine) and planner.config.constrains:

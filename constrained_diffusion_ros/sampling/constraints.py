@@ -22,9 +22,11 @@ from constrained_diffusion_ros.sampling.hooks import (
 )
 from constrained_diffusion_ros.sampling.sampler import DenoisingSampler, SampleHook
 from constrained_diffusion_ros.sampling.shield import PusherShield
-from constrained_diffusion_ros.zones.episodes import bounded_area, inflate_area
+from constrained_diffusion_ros.zones.episodes import EpisodeZones, bounded_area, inflate_area
 from constrained_diffusion_ros.zones.geometry import RestrictedArea
 from sim_bridge import AGENT_RADIUS, WORKSPACE_SIZE
+
+EFFECTIVE_CACHE_SIZE = 64  # zone sets whose effective areas a planner keeps
 
 
 @dataclass(frozen=True)
@@ -97,16 +99,22 @@ class ConstrainedPlanner:
         self.policy, self.config = policy, config
         self.sampler = DenoisingSampler(policy, config.sampler, config.denoising_steps)
         self.shield = PusherShield() if config.shield else None
-        self._inflated: tuple[RestrictedArea, RestrictedArea] | None = None
+        self._effective: dict[int, tuple[RestrictedArea, RestrictedArea]] = {}
 
     def effective_area(self, area: RestrictedArea) -> RestrictedArea:
         """The area the hooks see: the zones plus the outside of the workspace, inflated by the
-        pusher radius if configured (cached per area object)."""
-        if self._inflated is None or self._inflated[0] is not area:
-            bounded = bounded_area(area, WORKSPACE_SIZE)
+        pusher radius if configured. Cached per zone set, also inside per-episode wrappers,
+        which the evaluation builds anew at every step around the same zone sets."""
+        if isinstance(area, EpisodeZones):
+            return EpisodeZones([self.effective_area(a) for a in area.areas], area.assignment)
+        cached = self._effective.get(id(area))
+        if cached is None or cached[0] is not area:
+            if len(self._effective) >= EFFECTIVE_CACHE_SIZE:  # moving zones: a new set per step
+                self._effective.clear()
             radius = AGENT_RADIUS if self.config.inflate else 0.0
-            self._inflated = (area, inflate_area(bounded, radius))
-        return self._inflated[1]
+            cached = (area, inflate_area(bounded_area(area, WORKSPACE_SIZE), radius))
+            self._effective[id(area)] = cached
+        return cached[1]
 
     def hooks(self, area: RestrictedArea, pusher: torch.Tensor) -> list[SampleHook]:
         c, first = self.config, self.policy.config.first_executed

@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 import torch
 
+from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
+from constrained_diffusion_ros.sampling.constraints import ConstrainedPlanner, ConstraintConfig
 from constrained_diffusion_ros.sampling.shield import PusherShield
 from constrained_diffusion_ros.zones import ZoneSet, rectangle
 from constrained_diffusion_ros.zones.episodes import EpisodeZones
@@ -107,3 +109,14 @@ def test_each_episode_is_shielded_from_its_own_zones() -> None:
     target = np.array([[300.0, 300.0], [300.0, 300.0]])
     out = PusherShield()(areas, inside, target, 0)
     assert out[0, 0] < 200 and np.array_equal(out[1], target[1])
+
+
+def test_the_planner_shields_against_the_zones_grown_by_the_pusher_radius(
+        tiny_policy: DiffusionPolicy) -> None:
+    """Without `inflate` the hooks see the raw zones, the shield still the grown ones."""
+    planner = ConstrainedPlanner(tiny_policy, ConstraintConfig("s", project=True, shield=True))
+    near = np.array([[190.0, 300.0]])  # centre 10 px from the zone: the disc overlaps it
+    out = planner.guard(ZONE, near, np.array([[300.0, 300.0]]), step=0)
+    assert clearance(out)[0] >= AGENT_RADIUS + 19  # the escape: 20 px clear of the grown zone
+    free = planner.guard(None, near, np.array([[300.0, 300.0]]), step=1)
+    np.testing.assert_array_equal(free, [[300.0, 300.0]])  # no zones: nothing to shield from

@@ -109,11 +109,12 @@ def run(args: argparse.Namespace) -> int:
         report.plot_frames(log, episode, scenario, output / "frames.png",
                            f"{config.display} on {scenario.label}, seed {seeds[0]}")
     summary = (f"{len(cells)} cells ({paper_cells} of the paper's), {len(seeds)} episodes "
-               f"each, {args.steps} steps; wall time {wall:.0f} s on {torch.get_num_threads()} "
-               "threads" + (f" for the {len(cells) - reused} cells run now ({reused} reused)"
-                            if reused else ""))
+               f"each, {args.steps} steps; this run: {wall:.0f} s on "
+               f"{torch.get_num_threads()} threads for {len(cells) - reused} cells"
+               + (f" ({reused} reused from results.json)" if reused else ""))
     (output / "table.md").write_text(
-        f"# Evaluation\n\n{summary}\n\nCells: `s / r` (ours), then the paper's Table I value.\n\n"
+        f"# Evaluation\n\n{summary}\n\n{report.batch_times(cells)}\n\n"
+        f"Cells: `s / r` (ours), then the paper's Table I value.\n\n"
         f"{table}\n\n## Every metric\n\n{report.details_table(cells)}\n")
     print(table)
     print(summary)

@@ -43,14 +43,31 @@ def markdown_table(cells: Sequence[CellResult], scenarios: Sequence[Scenario],
 
 def details_table(cells: Sequence[CellResult]) -> str:
     columns = ["scenario", "configuration", "s", "final_score", "success_rate", "r", "r_body",
-               "path_crossings", "starts_inside", "ms_per_chunk"]
+               "r_body_outside_starts", "path_crossings", "starts_inside", "ms_per_chunk"]
     lines = ["| " + " | ".join(columns) + " |", "|" + " --- |" * len(columns)]
     for cell in cells:
         values = cell.to_dict()
-        lines.append("| " + " | ".join(
-            f"{values[c]:.3f}" if isinstance(values[c], float) else str(values[c])
-            for c in columns) + " |")
+        lines.append("| " + " | ".join(_format(values[c]) for c in columns) + " |")
     return "\n".join(lines)
+
+
+def _format(value: object) -> str:
+    if value is None:
+        return "-"
+    return f"{value:.3f}" if isinstance(value, float) else str(value)
+
+
+def batch_times(cells: Sequence[CellResult]) -> str:
+    """Wall time of each batched run the cells came from (configurations sharing a sampler run
+    as one batch), kept with the cells so a report rebuilt with --reuse still shows them."""
+    batches: dict[tuple, list[CellResult]] = {}
+    for cell in cells:
+        if cell.batch_wall_s is not None:
+            batches.setdefault((cell.batch, cell.batch_wall_s), []).append(cell)
+    lines = [f"- {len(group)} cells ({', '.join(dict.fromkeys(c.configuration for c in group))})"
+             f", one batch of {episodes} episodes: {wall:.0f} s"
+             for (episodes, wall), group in batches.items()]
+    return "Batched runs:\n\n" + "\n".join(lines) if lines else ""
 
 
 def write_tables(cells: Sequence[CellResult], output: Path) -> None:

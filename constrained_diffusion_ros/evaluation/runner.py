@@ -4,6 +4,7 @@ path crossings, planning time)."""
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass
 
@@ -42,6 +43,7 @@ class CellResult:
     ms_per_chunk: float  # planning wall time per episode-chunk (amortised over the batch)
     ms_per_call: float  # wall time of one batched planning call
     batch: int  # episodes per batched call in the steady state
+    batch_wall_s: float | None = None  # wall time of the whole batched run the cell came from
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -167,6 +169,7 @@ def evaluate_configurations(policy: DiffusionPolicy, configs: Sequence[Constrain
                                           step)
         return out
 
+    started = time.monotonic()
     episode_seeds = [seed for _ in blocks for seed in seeds]
     shielded = any(c.shield for c in configs)
     log = rollout(plan, episode_seeds, n_steps, horizons.n_obs_steps, horizons.first_executed,
@@ -177,6 +180,7 @@ def evaluate_configurations(policy: DiffusionPolicy, configs: Sequence[Constrain
         "ms_per_chunk": 1000 * log.planning_s / max(1, log.planned_chunks),
         "ms_per_call": 1000 * log.planning_s / max(1, log.planner_calls),
         "batch": len(episode_seeds),
+        "batch_wall_s": time.monotonic() - started,
     }
     cells, first_rows = [], {}
     for block in blocks:

@@ -1,4 +1,5 @@
-"""The topic contract: every topic and service of the package, in one place."""
+"""The ROS interface: every topic and service (`contract`), the message <-> array and
+stamp <-> control-step conversions (`conversions`), and how a node runs (`spin`)."""
 
 from msg_schemas.contract import FRAME_ID, SERVICES, TOPICS, Endpoint, qos_profile
 

@@ -17,8 +17,10 @@ import torch
 
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 from constrained_diffusion_ros.paths import default_model_dir
+from constrained_diffusion_ros.planning.config import ConstraintConfig
+from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.policy.weights import load_policy
-from constrained_diffusion_ros.sampling.constraints import ConstrainedPlanner, ConstraintConfig
+from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.training.dataset import WindowSampler, load_demonstrations
 
 DEFAULT_DATASET = Path(__file__).resolve().parents[1].parent / "shared/datasets/" \
@@ -27,11 +29,11 @@ DEFAULT_DATASET = Path(__file__).resolve().parents[1].parent / "shared/datasets/
 
 def measure(planner: ConstrainedPlanner, obs: torch.Tensor, area, repeats: int) -> tuple:
     generator = torch.Generator().manual_seed(0)
-    planner.plan(obs, area, generator)  # warm-up
+    planner.plan(obs, area, generator=generator)  # warm-up
     started = time.perf_counter()
     violations = []
     for _ in range(repeats):
-        chunk = planner.plan(obs, area, generator)
+        chunk = planner.plan(obs, area, generator=generator)
         first, n = planner.policy.config.first_executed, planner.policy.config.n_action_steps
         violations.append(area.contains(chunk[:, first: first + n]).sum(dim=1).float())
     ms = 1000 * (time.perf_counter() - started) / repeats
@@ -71,18 +73,19 @@ def main() -> None:
     print(f"{'method':<40} {'ms/call':>9} {'ratio':>7} {'violations/chunk':>17}")
     base = {}
     for label, config in rows:
-        ms, violations = measure(ConstrainedPlanner(policy, config), obs, area, args.repeats)
+        ms, violations = measure(ConstrainedPlanner(policy, config, PUSHT_ROBOT), obs, area, args.repeats)
         reference = base.setdefault(config.sampler, ms)
         print(f"{label:<40} {ms:9.1f} {ms / reference:7.2f} {violations:17.3f}")
 
     # The shield runs once per executed step, outside the denoising loop: its cost per step for
     # the same pushers, each commanded to its demonstrated next action.
-    planner = ConstrainedPlanner(policy, ConstraintConfig("shield", inflate=True, shield=True))
-    positions = obs[:, -1, -2:].double().numpy()
+    planner = ConstrainedPlanner(policy, ConstraintConfig("shield", inflate=True, shield=True),
+                                 PUSHT_ROBOT)
+    latest = obs[:, -1].numpy()
     setpoints = actions[:, c.first_executed].double().numpy()
     started = time.perf_counter()
     for step in range(args.repeats * 10):
-        planner.guard(area, positions, setpoints, step)
+        planner.guard(area, latest, setpoints, step)
     ms = 1000 * (time.perf_counter() - started) / (args.repeats * 10)
     print(f"{'shield, per executed step':<40} {ms:9.1f} {'':>7} "
           f"{planner.shield.corrected / (args.repeats * 10):17.3f} corrected setpoints/step")

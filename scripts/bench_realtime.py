@@ -17,10 +17,7 @@ the rest of that chunk violates it and the policy must replan at once. Prints; a
 from __future__ import annotations
 
 import argparse
-import os
-import random
 import signal
-import subprocess
 import sys
 import tempfile
 import time
@@ -31,11 +28,21 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from constrained_diffusion_ros.evaluation.launcher import (  # noqa: E402
+    NodeProcesses,
+    random_domain_id,
+)
 from constrained_diffusion_ros.paths import config_dir, default_model_dir  # noqa: E402
-from msg_schemas import FRAME_ID, SERVICES, TOPICS, qos_profile  # noqa: E402
+from msg_schemas import SERVICES, TOPICS, qos_profile  # noqa: E402
+from msg_schemas.conversions import (  # noqa: E402
+    path_of,
+    point_of,
+    step_of_stamp,
+    zone_message,
+    zones_shown,
+)
+from sim_bridge import CONTROL_HZ  # noqa: E402
 
-SIM = "sim_bridge.sim_node"
-POLICY = "constrained_diffusion_ros.nodes.policy_node"
 ZONE_ID = 900  # far from the ids scenarios use
 MAX_POINT_GAP = 1e-3  # px: a setpoint this close to a waypoint of the old plan comes from it
 
@@ -63,47 +70,11 @@ def build_parser() -> argparse.ArgumentParser:
                         help="ROS domain (default: a random one, so nothing else is heard)")
     parser.add_argument("--log-dir", default=None,
                         help="where the nodes' logs go (default: a temporary directory)")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch threads of each node process")
     parser.add_argument("--startup-timeout", type=float, default=60.0,
                         help="seconds to wait for the nodes to start and discover each other")
     return parser
-
-
-class Children:
-    """Node processes; stopped like Ctrl-C (SIGINT), killed if they do not exit."""
-
-    def __init__(self, log_dir: Path, domain_id: int) -> None:
-        self.log_dir = log_dir
-        self.env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id), "PYTHONUNBUFFERED": "1",
-                    "ROS_LOG_DIR": str(log_dir / "ros_log")}
-        self.processes: dict[str, subprocess.Popen] = {}
-
-    def start(self, name: str, module: str, **parameters: object) -> None:
-        args = [sys.executable, "-m", module, "--ros-args"]
-        for key, value in parameters.items():
-            text = str(value).lower() if isinstance(value, bool) else str(value)
-            args += ["-p", f"{key}:={text}"]
-        with (self.log_dir / f"{name}.log").open("w") as log:
-            self.processes[name] = subprocess.Popen(args, cwd=ROOT, env=self.env, stdout=log,
-                                                    stderr=subprocess.STDOUT)
-
-    def failed(self) -> str | None:
-        for name, process in self.processes.items():
-            if process.poll() is not None:
-                return f"{name} exited with code {process.returncode}; see " \
-                       f"{self.log_dir / (name + '.log')}"
-        return None
-
-    def stop_all(self) -> None:
-        for process in self.processes.values():
-            if process.poll() is None:
-                process.send_signal(signal.SIGINT)
-        for process in self.processes.values():
-            try:
-                process.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
-        self.processes.clear()
 
 
 def parse_zone(text: str) -> np.ndarray:
@@ -139,14 +110,14 @@ def period_report(label: str, arrivals: list[float], nominal_ms: float) -> None:
 def run(args: argparse.Namespace) -> int:
     import rclpy
     from diagnostic_msgs.msg import DiagnosticStatus
-    from geometry_msgs.msg import Point32, PointStamped, PolygonInstanceStamped
+    from geometry_msgs.msg import PointStamped, PolygonInstanceStamped
     from nav_msgs.msg import Path as PathMsg
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
     from std_srvs.srv import Trigger
     from visualization_msgs.msg import MarkerArray
 
-    domain_id = args.domain_id if args.domain_id is not None else random.randint(1, 100)
+    domain_id = args.domain_id if args.domain_id is not None else random_domain_id()
     log_dir = Path(args.log_dir or tempfile.mkdtemp(prefix="bench_realtime_"))
     log_dir.mkdir(parents=True, exist_ok=True)
     nominal_ms = 1000.0 / args.rate_hz
@@ -159,13 +130,10 @@ def run(args: argparse.Namespace) -> int:
     node = rclpy.create_node("bench_realtime", context=context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
-    children = Children(log_dir, domain_id)
+    children = NodeProcesses(log_dir, domain_id, threads=args.threads)
 
     def now() -> float:
         return time.monotonic()
-
-    def step_of(stamp) -> int:
-        return round((stamp.sec + stamp.nanosec * 1e-9) * args.rate_hz)
 
     setpoints: list[tuple[float, int, np.ndarray]] = []  # arrival, step, point
     observations: dict[int, float] = {}  # step -> first arrival
@@ -175,11 +143,10 @@ def run(args: argparse.Namespace) -> int:
     markers: list[tuple[float, int]] = []  # arrival, zones shown
 
     def on_setpoint(msg) -> None:
-        setpoints.append((now(), step_of(msg.header.stamp), np.array([msg.point.x,
-                                                                      msg.point.y])))
+        setpoints.append((now(), step_of_stamp(msg.header.stamp, CONTROL_HZ), point_of(msg)))
 
     def on_pusher(msg) -> None:
-        step = step_of(msg.header.stamp)
+        step = step_of_stamp(msg.header.stamp, CONTROL_HZ)
         if step not in observations:
             observations[step] = now()
             observation_arrivals.append(observations[step])
@@ -189,12 +156,10 @@ def run(args: argparse.Namespace) -> int:
 
     subscribe("setpoint", PointStamped, on_setpoint)
     subscribe("pusher", PointStamped, on_pusher)
-    subscribe("plan", PathMsg, lambda msg: plans.append(
-        (now(), np.array([(p.pose.position.x, p.pose.position.y) for p in msg.poses]))))
+    subscribe("plan", PathMsg, lambda msg: plans.append((now(), path_of(msg))))
     subscribe("policy_status", DiagnosticStatus, lambda msg: statuses.append(
         (now(), {kv.key: kv.value for kv in msg.values})))
-    subscribe("zone_markers", MarkerArray, lambda msg: markers.append(
-        (now(), sum(m.action == m.ADD for m in msg.markers))))
+    subscribe("zone_markers", MarkerArray, lambda msg: markers.append((now(), zones_shown(msg))))
     zone_pub = node.create_publisher(PolygonInstanceStamped, TOPICS["zones"].name,
                                      qos_profile(TOPICS["zones"], "publisher"))
     reset = node.create_client(Trigger, SERVICES["reset"].name)
@@ -218,9 +183,9 @@ def run(args: argparse.Namespace) -> int:
             executor.spin_once(timeout_sec=0.005)
 
     try:
-        children.start("sim_node", SIM, seed=args.seed, mode="realtime", rate_hz=args.rate_hz,
+        children.start("sim_node", seed=args.seed, mode="realtime", rate_hz=args.rate_hz,
                        autostart=False)
-        children.start("policy_node", POLICY, model=args.model,
+        children.start("policy_node", model=args.model,
                        configuration=args.configuration,
                        configurations_file=args.configurations_file)
         started = now()
@@ -244,12 +209,7 @@ def run(args: argparse.Namespace) -> int:
             vertices = parse_zone(args.zone)
         old_plan = plans[-1][1] if plans else np.zeros((0, 2))
         n_setpoints, n_statuses, n_markers = len(setpoints), len(statuses), len(markers)
-        msg = PolygonInstanceStamped()
-        msg.header.frame_id = FRAME_ID
-        msg.header.stamp = node.get_clock().now().to_msg()
-        msg.polygon.id = ZONE_ID
-        msg.polygon.polygon.points = [Point32(x=float(x), y=float(y), z=0.0)
-                                      for x, y in vertices]
+        msg = zone_message(ZONE_ID, vertices, node.get_clock().now().to_msg())
         published = now()
         zone_pub.publish(msg)
         spin_for(max(0.0, args.seconds - (now() - begin)))

@@ -1,25 +1,26 @@
-"""ROS-free PushT simulator: physics, scoring, keypoints and off-screen rendering."""
+"""The PushT task: scene facts (`scene`), pymunk physics (`physics`), off-screen rendering
+(`render`) and the rclpy simulator node (`sim_node`, imported only by ROS users)."""
 
-from sim_bridge.pusht import (
+from sim_bridge.physics import PushTBatch, PushTSim
+from sim_bridge.render import render_scene
+from sim_bridge.scene import (
     AGENT_RADIUS,
     CONTROL_HZ,
     COORD_LIMITS,
     GOAL_POSE,
+    K_P,
+    K_V,
     KEYPOINTS_LOCAL,
     SIM_HZ,
     SUBSTEPS,
     SUCCESS_THRESHOLD,
     WORKSPACE_SIZE,
-    PushTBatch,
-    PushTSim,
     block_keypoints,
     coverage,
-    pusher_transition,
     score_from_coverage,
     seeded_state,
     tee_polygons,
 )
-from sim_bridge.render import render_scene
 
 __all__ = [
     "AGENT_RADIUS",
@@ -27,6 +28,8 @@ __all__ = [
     "COORD_LIMITS",
     "GOAL_POSE",
     "KEYPOINTS_LOCAL",
+    "K_P",
+    "K_V",
     "SIM_HZ",
     "SUBSTEPS",
     "SUCCESS_THRESHOLD",
@@ -35,7 +38,6 @@ __all__ = [
     "PushTSim",
     "block_keypoints",
     "coverage",
-    "pusher_transition",
     "render_scene",
     "score_from_coverage",
     "seeded_state",

@@ -10,7 +10,7 @@ from collections.abc import Iterable, Sequence
 import numpy as np
 from PIL import Image, ImageDraw
 
-from sim_bridge.pusht import (
+from sim_bridge.scene import (
     AGENT_RADIUS,
     GOAL_POSE,
     WALL_RADIUS,

@@ -24,28 +24,28 @@ import math
 import sys
 import time
 
-import numpy as np
-from builtin_interfaces.msg import Time
-from geometry_msgs.msg import Point32, PointStamped, PolygonStamped, PoseStamped
+from geometry_msgs.msg import PointStamped, PolygonStamped, PoseStamped
 from rclpy.node import Node
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
-from constrained_diffusion_ros.nodes.spin import spin_node
 from msg_schemas import FRAME_ID, SERVICES, TOPICS, qos_profile
-from sim_bridge.pusht import CONTROL_HZ, COORD_LIMITS, PushTSim
+from msg_schemas.conversions import (
+    point_message,
+    polygon_message,
+    pose2d_message,
+    stamp_nanoseconds,
+    stamp_of_step,
+)
+from msg_schemas.spin import spin_node
+from sim_bridge.physics import PushTSim
+from sim_bridge.scene import CONTROL_HZ, COORD_LIMITS
 
 MODES = ("lockstep", "realtime")
 # Lockstep: while the sim waits for a setpoint it re-sends the current observation this often,
 # so a subscriber that appears after the initial publish (discovery takes seconds) still gets
 # it. The copies carry the same stamp; consumers drop observations whose stamp they have seen.
 REPUBLISH_PERIOD_S = 0.5
-
-
-def sim_stamp(step: int) -> Time:
-    """Simulated time of a control step, in exact integer nanoseconds."""
-    nanoseconds = step * (1_000_000_000 // CONTROL_HZ)
-    return Time(sec=nanoseconds // 1_000_000_000, nanosec=nanoseconds % 1_000_000_000)
 
 
 def setpoint_fault(msg: PointStamped) -> str | None:
@@ -133,26 +133,11 @@ class SimNode(Node):
 
     def publish_observation(self) -> None:
         """Block pose, score, keypoints, then the pusher, all with one simulated-time stamp."""
-        stamp = sim_stamp(self.step_count)
-        bx, by, yaw = (float(v) for v in self.sim.block_pose)
-        pose = PoseStamped()
-        pose.header.stamp, pose.header.frame_id = stamp, FRAME_ID
-        pose.pose.position.x, pose.pose.position.y = bx, by
-        pose.pose.orientation.z, pose.pose.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
-        self.pose_pub.publish(pose)
-
+        stamp = stamp_of_step(self.step_count, CONTROL_HZ)
+        self.pose_pub.publish(pose2d_message(self.sim.block_pose, stamp))
         self.score_pub.publish(Float64(data=self.sim.score()))
-
-        keypoints = PolygonStamped()
-        keypoints.header.stamp, keypoints.header.frame_id = stamp, FRAME_ID
-        keypoints.polygon.points = [Point32(x=float(x), y=float(y), z=0.0)
-                                    for x, y in np.asarray(self.sim.keypoints())]
-        self.keypoints_pub.publish(keypoints)
-
-        pusher = PointStamped()
-        pusher.header.stamp, pusher.header.frame_id = stamp, FRAME_ID
-        pusher.point.x, pusher.point.y = (float(v) for v in self.sim.state[:2])
-        self.pusher_pub.publish(pusher)
+        self.keypoints_pub.publish(polygon_message(self.sim.keypoints(), stamp))
+        self.pusher_pub.publish(point_message(self.sim.state[:2], stamp))
         self._last_publish = time.monotonic()
 
     # ---- callbacks
@@ -169,8 +154,8 @@ class SimNode(Node):
         if self.mode == "realtime":
             self.target = (msg.point.x, msg.point.y)
             return
-        stamp, current = msg.header.stamp, sim_stamp(self.step_count)
-        if (stamp.sec, stamp.nanosec) != (current.sec, current.nanosec):
+        current = stamp_of_step(self.step_count, CONTROL_HZ)
+        if stamp_nanoseconds(msg.header.stamp) != stamp_nanoseconds(current):
             return  # answers another observation (a duplicate of one already stepped past)
         try:
             self.step(msg.point.x, msg.point.y)

@@ -9,6 +9,7 @@ from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
 from msg_schemas import TOPICS
+from msg_schemas.conversions import step_of_stamp
 from sim_bridge import CONTROL_HZ
 
 TRIAL_TOPICS = {"pusher": "pusher", "block": "block_pose",
@@ -33,6 +34,5 @@ def read_trial(bag: str | Path) -> dict[str, dict[int, object]]:
     for kind, topic in TRIAL_TOPICS.items():
         trial[kind] = {}
         for msg in messages.get(TOPICS[topic].name, []):
-            stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-            trial[kind][round(stamp * CONTROL_HZ)] = msg
+            trial[kind][step_of_stamp(msg.header.stamp, CONTROL_HZ)] = msg
     return trial

@@ -16,8 +16,10 @@ import torch
 
 from constrained_diffusion_ros.evaluation.rollout import rollout
 from constrained_diffusion_ros.paths import default_model_dir
+from constrained_diffusion_ros.planning.config import ConstraintConfig
+from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.policy.weights import load_policy
-from constrained_diffusion_ros.sampling.sampler import DenoisingSampler
+from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -42,21 +44,21 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         policy = load_policy(args.model)
-        sampler = DenoisingSampler(policy, args.sampler, args.denoising_steps)
+        unconstrained = ConstraintConfig("none", sampler=args.sampler,
+                                         denoising_steps=args.denoising_steps)
+        planner = ConstrainedPlanner(policy, unconstrained, PUSHT_ROBOT)
     except ValueError as error:
         print(f"benchmark_policy: {error}", file=sys.stderr)
         return 2
     generator = torch.Generator().manual_seed(args.seed)
     seeds = list(range(args.first_seed, args.first_seed + args.episodes))
-    config = policy.config
     started = time.monotonic()
-    log = rollout(lambda obs, _step, _rows: sampler.sample(obs, generator), seeds, args.steps,
-                  config.n_obs_steps, config.first_executed, config.n_action_steps,
-                  progress=True, description="benchmark")
+    log = rollout(planner, seeds, args.steps, generator=generator, progress=True,
+                  description="benchmark")
     wall = time.monotonic() - started
     figures = {
         "episodes": len(seeds), "seeds": f"{seeds[0]}..{seeds[-1]}", "action_steps": args.steps,
-        "sampler": f"{args.sampler}-{sampler.num_inference_steps}",
+        "sampler": f"{args.sampler}-{planner.sampler.num_inference_steps}",
         "mean_best_score": float(log.best_score.mean()),
         "mean_final_score": float(log.final_score.mean()),
         "success_rate": float(log.success.mean()), "wall_time_s": round(wall, 1),

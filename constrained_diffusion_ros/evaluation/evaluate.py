@@ -18,11 +18,11 @@ import torch
 from tqdm import tqdm
 
 from constrained_diffusion_ros.evaluation import report
+from constrained_diffusion_ros.evaluation.configurations import load_evaluated
 from constrained_diffusion_ros.evaluation.runner import CellResult, evaluate_configurations
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.policy.weights import load_policy
-from constrained_diffusion_ros.sampling.constraints import load_configurations
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -44,7 +44,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="keep the cells already in OUTPUT/results.json and run only the "
                              "missing ones (after adding a configuration or a scenario, say)")
     parser.add_argument("--config-dir", default=str(config_dir()),
-                        help="directory with scenarios.yaml and configurations.yaml")
+                        help="directory with scenarios.yaml, configurations.yaml and "
+                             "evaluation.yaml (the report's labels)")
     return parser
 
 
@@ -64,8 +65,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--episodes and --steps must be positive")
     directory = Path(args.config_dir)
     scenarios = select(load_scenarios(directory / "scenarios.yaml"), args.scenarios, "scenarios")
-    configs = select(load_configurations(directory / "configurations.yaml"), args.configs,
-                     "configurations")
+    configs = select(load_evaluated(directory), args.configs, "configurations")
     policy = load_policy(args.model)
     seeds = list(range(args.first_seed, args.first_seed + args.episodes))
     output = Path(args.output)
@@ -82,11 +82,12 @@ def run(args: argparse.Namespace) -> int:
         cells, reused = cells + kept, reused + len(kept)
         missing = [s for s in chosen if (s.name, config.name) not in previous]
         if missing:
-            pending.setdefault(config.sampler_key, []).append((config, missing))
+            pending.setdefault(config.config.sampler_key, []).append((config, missing))
     for group in tqdm(pending.values(), desc="batches", unit="batch"):
         t0 = time.monotonic()
         results, log, first_rows = evaluate_configurations(
-            policy, [c for c, _ in group], [chosen for _, chosen in group], seeds, args.steps)
+            policy, [c.config for c, _ in group], [chosen for _, chosen in group], seeds,
+            args.steps)
         cells += results
         tqdm.write(f"{', '.join(c.name for c, _ in group)}: {len(results)} cells x "
                    f"{len(seeds)} episodes, batch of {len(log.seeds)}, in "
@@ -107,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
     if figure:
         log, episode, scenario, config = figure
         report.plot_frames(log, episode, scenario, output / "frames.png",
-                           f"{config.display} on {scenario.label}, seed {seeds[0]}")
+                           f"{config.label} on {scenario.label}, seed {seeds[0]}")
     summary = (f"{len(cells)} cells ({paper_cells} of the paper's), {len(seeds)} episodes "
                f"each, {args.steps} steps; this run: {wall:.0f} s on "
                f"{torch.get_num_threads()} threads for {len(cells) - reused} cells"

@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from constrained_diffusion_ros.evaluation.configurations import EvaluatedConfiguration
 from constrained_diffusion_ros.evaluation.rollout import RolloutLog
 from constrained_diffusion_ros.evaluation.runner import CellResult
 from constrained_diffusion_ros.evaluation.scenarios import Scenario
 from constrained_diffusion_ros.paths import config_dir
-from constrained_diffusion_ros.sampling.constraints import ConstraintConfig
 
 
 def load_paper_table(path: Path | None = None) -> dict[str, dict[str, list[float]]]:
@@ -23,10 +23,10 @@ def load_paper_table(path: Path | None = None) -> dict[str, dict[str, list[float
 
 
 def markdown_table(cells: Sequence[CellResult], scenarios: Sequence[Scenario],
-                   configs: Sequence[ConstraintConfig], paper: dict) -> str:
+                   configs: Sequence[EvaluatedConfiguration], paper: dict) -> str:
     """Rows: scenarios; columns: configurations; cells: `s / r` ours, then the paper's."""
     by_key = {(c.scenario, c.configuration): c for c in cells}
-    header = "| scenario | " + " | ".join(c.display for c in configs) + " |"
+    header = "| scenario | " + " | ".join(c.label for c in configs) + " |"
     lines = [header, "|" + " --- |" * (len(configs) + 1)]
     for scenario in scenarios:
         row = [scenario.label]
@@ -79,7 +79,7 @@ def write_tables(cells: Sequence[CellResult], output: Path) -> None:
         writer.writerows(rows)
 
 
-def plot_s_against_r(cells: Sequence[CellResult], configs: Sequence[ConstraintConfig],
+def plot_s_against_r(cells: Sequence[CellResult], configs: Sequence[EvaluatedConfiguration],
                      path: Path) -> None:
     import matplotlib
 
@@ -90,7 +90,7 @@ def plot_s_against_r(cells: Sequence[CellResult], configs: Sequence[ConstraintCo
     markers = "os^vD<>ph*xP"
     for index, config in enumerate(configs):
         mine = [c for c in cells if c.configuration == config.name]
-        ax.scatter([c.r for c in mine], [c.s for c in mine], label=config.display,
+        ax.scatter([c.r for c in mine], [c.s for c in mine], label=config.label,
                    marker=markers[index % len(markers)], alpha=0.8)
     ax.set_xscale("symlog", linthresh=1.0)
     ax.set(xlabel="r: executed steps commanded inside a zone (mean per episode)",

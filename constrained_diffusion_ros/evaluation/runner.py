@@ -5,7 +5,7 @@ path crossings, planning time)."""
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -13,14 +13,11 @@ import torch
 
 from constrained_diffusion_ros.evaluation.rollout import RolloutLog, rollout
 from constrained_diffusion_ros.evaluation.scenarios import Scenario
+from constrained_diffusion_ros.planning.config import ConstraintConfig
+from constrained_diffusion_ros.planning.planners import MixedPlanner
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
-from constrained_diffusion_ros.sampling.constraints import (
-    ConstrainedPlanner,
-    ConstraintConfig,
-    MixedPlanner,
-)
+from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones.episodes import EpisodeZones
-from sim_bridge import AGENT_RADIUS
 
 DEFAULT_SEEDS = tuple(range(100000, 100025))
 
@@ -67,11 +64,11 @@ def cell_metrics(log: RolloutLog, rows: np.ndarray, scenario: Scenario) -> dict[
         cmd = torch.from_numpy(commanded[:, columns])
         inside[:, columns] = area.contains(cmd).numpy()
         after = torch.from_numpy(pusher[:, 1:][:, columns])
-        body[:, columns] = (area.signed_distance(after) < AGENT_RADIUS).numpy()
+        body[:, columns] = (area.signed_distance(after) < PUSHT_ROBOT.pusher_radius).numpy()
         start = torch.from_numpy(previous[:, columns])
         crossing[:, columns] = (area.crosses(start, cmd) & ~area.contains(start)).numpy()
     start = torch.from_numpy(pusher[:, 0])
-    started_inside = (zones[0].signed_distance(start) < AGENT_RADIUS).numpy()
+    started_inside = (zones[0].signed_distance(start) < PUSHT_ROBOT.pusher_radius).numpy()
     outside_starts = body[~started_inside].sum(axis=1)
     return {
         "s": float(log.best_score[rows].mean()),
@@ -84,6 +81,21 @@ def cell_metrics(log: RolloutLog, rows: np.ndarray, scenario: Scenario) -> dict[
         "r_body_outside_starts": (float(outside_starts.mean())
                                   if len(outside_starts) else None),
     }
+
+
+class ScenarioZones:
+    """The zone source of a batched evaluation: row b sees the zones of scenario
+    `scenario_of_row[b]`, which change every step while that scenario moves."""
+
+    def __init__(self, scenarios: Sequence[Scenario], scenario_of_row: np.ndarray) -> None:
+        self.scenarios, self.scenario_of_row = list(scenarios), scenario_of_row
+        self.moving = np.array([scenarios[i].moving for i in scenario_of_row])
+
+    def area_at(self, step: int) -> EpisodeZones:
+        return EpisodeZones([s.zones_at(step) for s in self.scenarios], self.scenario_of_row)
+
+    def version_at(self, step: int) -> np.ndarray:
+        return np.where(self.moving, step, 0)
 
 
 @dataclass(frozen=True)
@@ -122,59 +134,17 @@ def evaluate_configurations(policy: DiffusionPolicy, configs: Sequence[Constrain
     """Configurations that share a sampler (one `sampler_key`), each on its scenarios x seeds,
     all as one batch of episodes. Returns the cells, the log and, per (scenario, configuration),
     the log row of its first episode."""
-    mixed = MixedPlanner(policy, configs)
     scenarios = list(dict.fromkeys(s for chosen in scenario_lists for s in chosen))
     blocks = _layout(configs, scenario_lists, scenarios, len(seeds))
     owner = np.concatenate([np.full(b.stop - b.start, b.config) for b in blocks])
     scenario_of_row = np.concatenate([np.full(b.stop - b.start, b.scenarios[0]) for b in blocks])
-    moving = np.array([scenarios[i].moving for i in scenario_of_row]) & np.array(
-        [configs[i].constrains for i in owner])
+    planner = MixedPlanner(policy, configs, PUSHT_ROBOT, owner)
+    zones = ScenarioZones(scenarios, scenario_of_row)
     generator = torch.Generator().manual_seed(noise_seed)
-    horizons = policy.config
-
-    def area_at(step: int, rows: np.ndarray) -> EpisodeZones:
-        return EpisodeZones([s.zones_at(step) for s in scenarios], scenario_of_row[rows])
-
-    def by_config(rows: np.ndarray) -> Iterator[tuple[int, ConstrainedPlanner, np.ndarray]]:
-        """(index, planner, positions in `rows` that are its) per constraining configuration."""
-        for index, planner in enumerate(mixed.planners):
-            mine = np.nonzero(owner[rows] == index)[0]
-            if len(mine) and planner.config.constrains:
-                yield index, planner, mine
-
-    def plan(obs: torch.Tensor, step: int, rows: np.ndarray) -> torch.Tensor:
-        areas: list = [None] * len(configs)
-        for index, _planner, mine in by_config(rows):
-            areas[index] = area_at(step, rows[mine])
-        return mixed.plan(obs, areas, owner[rows], generator)
-
-    def replan_check(chunk: np.ndarray, next_index: np.ndarray, plan_step: np.ndarray,
-                     step: int) -> np.ndarray:
-        """Moving zones: replan where the rest of the chunk now lies in the (effective) zone."""
-        due = np.zeros(len(chunk), dtype=bool)
-        rows = np.nonzero(moving & (plan_step < step) & (next_index < chunk.shape[1]))[0]
-        for _index, planner, mine in by_config(rows):
-            chosen = rows[mine]
-            area = planner.effective_area(area_at(step, chosen))
-            inside = area.contains(torch.from_numpy(chunk[chosen])).numpy()
-            remaining = np.arange(chunk.shape[1])[None] >= next_index[chosen, None]
-            due[chosen] = (inside & remaining).any(axis=1)
-        return due
-
-    def guard(positions: np.ndarray, setpoints: np.ndarray, step: int) -> np.ndarray:
-        out = setpoints.copy()
-        for _index, planner, rows in by_config(np.arange(len(owner))):
-            if planner.shield is not None:
-                out[rows] = planner.guard(area_at(step, rows), positions[rows], setpoints[rows],
-                                          step)
-        return out
 
     started = time.monotonic()
     episode_seeds = [seed for _ in blocks for seed in seeds]
-    shielded = any(c.shield for c in configs)
-    log = rollout(plan, episode_seeds, n_steps, horizons.n_obs_steps, horizons.first_executed,
-                  horizons.n_action_steps, replan_check if moving.any() else None,
-                  guard if shielded else None, progress=progress,
+    log = rollout(planner, episode_seeds, n_steps, zones, generator, progress=progress,
                   description=", ".join(c.name for c in configs))
     timing = {
         "ms_per_chunk": 1000 * log.planning_s / max(1, log.planned_chunks),

@@ -14,34 +14,42 @@ import time
 import numpy as np
 import torch
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from geometry_msgs.msg import (
-    Point,
-    PointStamped,
-    PolygonInstanceStamped,
-    PolygonStamped,
-    PoseStamped,
-)
+from geometry_msgs.msg import PointStamped, PolygonInstanceStamped, PolygonStamped
 from nav_msgs.msg import Path as PathMsg
-from rcl_interfaces.msg import SetParametersResult
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from std_srvs.srv import Trigger
-from visualization_msgs.msg import Marker, MarkerArray
+from visualization_msgs.msg import MarkerArray
 
-from constrained_diffusion_ros.evaluation.rollout import ChunkExecutor
-from constrained_diffusion_ros.nodes.spin import spin_node
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
+from constrained_diffusion_ros.planning.config import load_configurations
+from constrained_diffusion_ros.planning.executor import ChunkExecutor
+from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
+from constrained_diffusion_ros.planning.robot import RobotModel
 from constrained_diffusion_ros.policy.weights import load_policy
-from constrained_diffusion_ros.sampling.constraints import (
-    ConstrainedPlanner,
-    load_configurations,
-)
+from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones.live import LiveZones
 from msg_schemas import FRAME_ID, SERVICES, TOPICS, qos_profile
-from sim_bridge import CONTROL_HZ
+from msg_schemas.conversions import (
+    path_message,
+    point_message,
+    point_of,
+    polygon_of,
+    stamp_seconds,
+    step_of_stamp,
+    zone_markers,
+)
+from msg_schemas.spin import spin_node
+from sim_bridge.scene import observation as pusht_observation
 
-
-def stamp_seconds(stamp) -> float:
-    return stamp.sec + stamp.nanosec * 1e-9
+ROBOT_PARAMETERS = {  # robot.<name>: what the planner knows of the robot; defaults: PushT
+    "pusher_radius": "px; zones grown by it keep the pusher's body out",
+    "workspace": "px: x_min, y_min, x_max, y_max; outside counts as restricted",
+    "kp": "PD gain on position (1/s^2)",
+    "kv": "PD gain on velocity (1/s)",
+    "control_hz": "setpoints per second; stamps are control steps at this rate",
+    "physics_hz": "PD integration rate the shield predicts the pusher with",
+}
 
 
 class PolicyNode(Node):
@@ -52,6 +60,7 @@ class PolicyNode(Node):
         self.declare_parameter("configurations_file", str(config_dir() / "configurations.yaml"))
         self.declare_parameter("noise_seed", 0)
         self.declare_parameter("zone_lifetime", 0.0)  # s; 0: zones stay until removed
+        self.robot = self._declare_robot()
         self.policy = load_policy(self.get_parameter("model").value)
         self.configurations = load_configurations(
             self.get_parameter("configurations_file").value)
@@ -80,7 +89,7 @@ class PolicyNode(Node):
         self.replan_latency_ms = float("nan")
         self.get_logger().info(
             f"policy from {self.get_parameter('model').value}, configuration "
-            f"{self.config.name!r} ({self.config.display})")
+            f"{self.config.name!r}")
 
     # -- wiring ---------------------------------------------------------------------------------
 
@@ -92,16 +101,27 @@ class PolicyNode(Node):
         self.create_subscription(msg_type, TOPICS[topic].name, callback,
                                  qos_profile(TOPICS[topic]))
 
+    def _declare_robot(self) -> RobotModel:
+        """robot.* parameters (read at start), PushT's by default."""
+        values = {}
+        for name, description in ROBOT_PARAMETERS.items():
+            default = getattr(PUSHT_ROBOT, name)
+            default = [float(v) for v in default] if name == "workspace" else float(default)
+            descriptor = ParameterDescriptor(description=description, read_only=True)
+            values[name] = self.declare_parameter(f"robot.{name}", default, descriptor).value
+        values["workspace"] = tuple(values["workspace"])
+        if len(values["workspace"]) != 4:
+            raise ValueError(f"parameter robot.workspace needs 4 numbers, got "
+                             f"{list(values['workspace'])}")
+        return RobotModel(**values, pusher_in_observation=PUSHT_ROBOT.pusher_in_observation)
+
     def _use_configuration(self, name: str) -> None:
         if name not in self.configurations:
             raise ValueError(f"unknown configuration {name!r}; known: "
                              f"{', '.join(self.configurations)}")
         self.config = self.configurations[name]
-        self.planner = ConstrainedPlanner(self.policy, self.config)
-        c = self.policy.config
-        self.chunks = ChunkExecutor(self._plan, c.n_obs_steps, c.first_executed,
-                                    c.n_action_steps, self._must_replan, self._guard)
-        self.version_at_plan = -1
+        self.planner = ConstrainedPlanner(self.policy, self.config, self.robot)
+        self.executor = ChunkExecutor(self.planner, self.zones, self.generator)
 
     def _on_parameters(self, parameters) -> SetParametersResult:
         for parameter in parameters:
@@ -116,28 +136,6 @@ class PolicyNode(Node):
                                            reason=f"{parameter.name} is read at start only")
         return SetParametersResult(successful=True)
 
-    # -- planning ---------------------------------------------------------------------------------
-
-    def _area(self):
-        snapshot = self.zones.snapshot()
-        return None if snapshot.is_empty or not self.config.constrains else snapshot
-
-    def _plan(self, obs: torch.Tensor, step: int, rows: np.ndarray) -> torch.Tensor:
-        self.version_at_plan = self.zones.version
-        return self.planner.plan(obs, self._area(), self.generator)
-
-    def _guard(self, positions: np.ndarray, setpoints: np.ndarray, step: int) -> np.ndarray:
-        return self.planner.guard(self._area(), positions, setpoints, step)
-
-    def _must_replan(self, chunk, next_index, plan_step, step) -> np.ndarray:
-        """Zones changed since the plan and the rest of the chunk would enter them."""
-        area = self._area()
-        if area is None or self.zones.version == self.version_at_plan:
-            return np.zeros(len(chunk), dtype=bool)
-        remaining = torch.from_numpy(chunk[:, next_index[0]:])
-        inside = self.planner.effective_area(area).contains(remaining).numpy()
-        return inside.any(axis=1)
-
     # -- observations -> setpoints ----------------------------------------------------------------
 
     def _on_keypoints(self, msg: PolygonStamped) -> None:
@@ -145,12 +143,12 @@ class PolicyNode(Node):
             self.get_logger().warning(f"keypoints need 9 points, got {len(msg.polygon.points)}")
             return
         stamp = stamp_seconds(msg.header.stamp)
-        self.keypoints[stamp] = np.array([(p.x, p.y) for p in msg.polygon.points])
+        self.keypoints[stamp] = polygon_of(msg.polygon)
         self._maybe_act(stamp, msg.header.stamp)
 
     def _on_pusher(self, msg: PointStamped) -> None:
         stamp = stamp_seconds(msg.header.stamp)
-        self.pushers[stamp] = np.array([msg.point.x, msg.point.y])
+        self.pushers[stamp] = point_of(msg)
         self._maybe_act(stamp, msg.header.stamp)
 
     def _maybe_act(self, stamp: float, stamp_msg) -> None:
@@ -162,8 +160,7 @@ class PolicyNode(Node):
             if self.last_setpoint is not None:
                 self.setpoint_pub.publish(self.last_setpoint)
             return
-        observation = np.concatenate([self.keypoints.pop(stamp).reshape(-1),
-                                      self.pushers.pop(stamp)])
+        observation = pusht_observation(self.keypoints.pop(stamp), self.pushers.pop(stamp))
         for old in [s for s in self.keypoints if s < stamp]:
             del self.keypoints[old]
         for old in [s for s in self.pushers if s < stamp]:
@@ -172,49 +169,34 @@ class PolicyNode(Node):
             self.get_logger().warning("observation with NaN/inf ignored")
             return
         if stamp < self.last_stamp or stamp == 0.0:  # the simulator was reset: a new episode
-            self.chunks.reset()
-            self.generator.manual_seed(self.get_parameter("noise_seed").value)
+            self.executor.reset(self.get_parameter("noise_seed").value)
         self.last_stamp = stamp
-        step = round(stamp * CONTROL_HZ)
+        step = step_of_stamp(stamp_msg, self.robot.control_hz)
         started = time.perf_counter()
-        setpoint = self.chunks.act(observation[None].astype(np.float32), step)[0]
+        setpoint = self.executor.act(observation[None].astype(np.float32), step)[0]
         planning_ms = 1000 * (time.perf_counter() - started)
         self._publish_setpoint(setpoint, stamp_msg)
-        if self.chunks.last_plan is not None:
-            self._after_plan()
+        if self.executor.last_plan is not None:
+            self._after_plan(self.executor.last_plan.chunks[0])
         self._publish_status(planning_ms)
 
     def _publish_setpoint(self, setpoint: np.ndarray, stamp_msg) -> None:
         """Stamped with the observation's own stamp (exact nanoseconds): lockstep matches it."""
-        msg = PointStamped()
-        msg.header.stamp = stamp_msg
-        msg.header.frame_id = FRAME_ID
-        msg.point = Point(x=float(setpoint[0]), y=float(setpoint[1]), z=0.0)
+        msg = point_message(setpoint, stamp_msg)
         self.setpoint_pub.publish(msg)
         self.last_setpoint = msg
-        area = self._area()
-        if area is not None and bool(area.contains(torch.tensor(setpoint[None]))[0]):
+        if bool(self.zones.snapshot().contains(torch.tensor(setpoint[None]))[0]):
             self.violations += 1
 
-    def _after_plan(self) -> None:
-        _step, _rows, plan = self.chunks.last_plan
+    def _after_plan(self, chunk: np.ndarray) -> None:
         if self.zone_change_time is not None:
             self.replan_latency_ms = 1000 * (time.monotonic() - self.zone_change_time)
             self.zone_change_time = None
-        path = PathMsg()
-        path.header.stamp = self.get_clock().now().to_msg()
-        path.header.frame_id = FRAME_ID
-        for x, y in plan[0]:
-            pose = PoseStamped()
-            pose.header = path.header
-            pose.pose.position = Point(x=float(x), y=float(y), z=0.0)
-            pose.pose.orientation.w = 1.0
-            path.poses.append(pose)
-        self.plan_pub.publish(path)
+        self.plan_pub.publish(path_message(chunk, self.get_clock().now().to_msg()))
 
     def _publish_status(self, planning_ms: float) -> None:
         values = {"configuration": self.config.name, "violations": self.violations,
-                  "plans": self.chunks.planner_calls, "planning_ms": f"{planning_ms:.1f}",
+                  "plans": self.executor.stats.planner_calls, "planning_ms": f"{planning_ms:.1f}",
                   "replan_latency_ms": f"{self.replan_latency_ms:.1f}",
                   "zones": len(self.zones)}
         status = DiagnosticStatus(level=DiagnosticStatus.OK, name="policy_node",
@@ -256,18 +238,8 @@ class PolicyNode(Node):
         return response
 
     def _publish_markers(self) -> None:
-        markers = MarkerArray(markers=[Marker(action=Marker.DELETEALL)])
         stamp = self.get_clock().now().to_msg()
-        for index, polygon in enumerate(self.zones.snapshot().polygons):
-            marker = Marker(type=Marker.LINE_STRIP, action=Marker.ADD, id=index, ns="zones")
-            marker.header.stamp, marker.header.frame_id = stamp, FRAME_ID
-            marker.scale.x = 2.0
-            marker.color.r, marker.color.a = 1.0, 1.0
-            marker.pose.orientation.w = 1.0
-            closed = [*polygon, polygon[0]]
-            marker.points = [Point(x=float(x), y=float(y), z=0.0) for x, y in closed]
-            markers.markers.append(marker)
-        self.marker_pub.publish(markers)
+        self.marker_pub.publish(zone_markers(self.zones.snapshot().polygons, stamp))
 
 
 def main(args: list[str] | None = None) -> int:

@@ -22,13 +22,14 @@ import sys
 import numpy as np
 import yaml
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import Point32, PointStamped, PolygonInstanceStamped
+from geometry_msgs.msg import PointStamped, PolygonInstanceStamped
 from rclpy.node import Node
 
 from constrained_diffusion_ros.evaluation.scenarios import Scenario, load_scenarios
-from constrained_diffusion_ros.nodes.spin import spin_node
 from constrained_diffusion_ros.zones import validate_polygon
-from msg_schemas import FRAME_ID, TOPICS, qos_profile
+from msg_schemas import TOPICS, qos_profile
+from msg_schemas.conversions import step_of_stamp, zone_message
+from msg_schemas.spin import spin_node
 from sim_bridge import CONTROL_HZ
 
 
@@ -43,16 +44,6 @@ def parse_polygon(text: str, label: str = "parameter polygon") -> np.ndarray:
         raise ValueError(f"{label}: every vertex needs exactly x,y, got {text!r}")
     validate_polygon(vertices, label)
     return np.asarray(vertices, dtype=float)
-
-
-def zone_message(zone_id: int, vertices: np.ndarray | None, stamp: Time) -> PolygonInstanceStamped:
-    """One id-keyed zone; `vertices` None gives the empty polygon that removes the id."""
-    msg = PolygonInstanceStamped()
-    msg.header.stamp, msg.header.frame_id = stamp, FRAME_ID
-    msg.polygon.id = int(zone_id)
-    if vertices is not None:
-        msg.polygon.polygon.points = [Point32(x=float(x), y=float(y), z=0.0) for x, y in vertices]
-    return msg
 
 
 class ZonePublisher(Node):
@@ -133,8 +124,7 @@ class ZonePublisher(Node):
 
     def on_pusher(self, msg: PointStamped) -> None:
         """A new sim step (stamp = step / 10 s; a reset goes back to 0): move the zones there."""
-        nanoseconds = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-        step = round(nanoseconds * CONTROL_HZ / 1_000_000_000)
+        step = step_of_stamp(msg.header.stamp, CONTROL_HZ)
         if self.sim_time is not None and step == self.step:
             return  # the sim re-sent an observation it already published
         self.step, self.sim_time = step, msg.header.stamp

@@ -15,7 +15,7 @@ import torch
 
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.normalizer import MinMaxNormalizer
-from constrained_diffusion_ros.sampling.schedulers import SchedulerKind, make_scheduler
+from constrained_diffusion_ros.policy.schedulers import SchedulerKind, make_scheduler
 
 
 @dataclass(frozen=True)

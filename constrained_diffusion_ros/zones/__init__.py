@@ -1,9 +1,13 @@
-"""Restricted zones: polygon geometry the inference hooks consult, and the live id-keyed set."""
+"""Restricted zones: the area protocol every check implements (`area`), exact polygon unions
+(`geometry`), different zones per episode of a batch (`episodes`), and the live id-keyed set a
+node updates from messages (`live`)."""
 
+from constrained_diffusion_ros.zones.area import Bounds, Inflated, RestrictedArea, Union
+from constrained_diffusion_ros.zones.episodes import EpisodeZones
 from constrained_diffusion_ros.zones.geometry import (
     QUAD_SEGS,
-    RestrictedArea,
     ZoneSet,
+    outside_of,
     rectangle,
     validate_polygon,
 )
@@ -11,10 +15,15 @@ from constrained_diffusion_ros.zones.live import LiveZones, ZoneId
 
 __all__ = [
     "QUAD_SEGS",
+    "Bounds",
+    "EpisodeZones",
+    "Inflated",
     "LiveZones",
     "RestrictedArea",
+    "Union",
     "ZoneId",
     "ZoneSet",
+    "outside_of",
     "rectangle",
     "validate_polygon",
 ]

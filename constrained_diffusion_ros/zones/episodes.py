@@ -9,14 +9,13 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
-import shapely
 import torch
 from torch import Tensor
 
-from constrained_diffusion_ros.zones.geometry import RestrictedArea, ZoneSet
+from constrained_diffusion_ros.zones.area import Bounds, RestrictedArea
 
 
-class EpisodeZones:
+class EpisodeZones(RestrictedArea):
     """A batch-aware restricted area: one `RestrictedArea` per group of episodes."""
 
     def __init__(self, areas: Sequence[RestrictedArea], assignment: Sequence[int]) -> None:
@@ -64,38 +63,11 @@ class EpisodeZones:
     def crosses(self, starts: Tensor, ends: Tensor) -> Tensor:
         return self._gather(lambda a, s, e: a.crosses(s, e), starts, ends)
 
-    def inflate(self, radius: float) -> EpisodeZones:
+    def select_rows(self, rows: Tensor) -> EpisodeZones:
+        return EpisodeZones(self.areas, self.assignment[rows])
+
+    def _inflated(self, radius: float) -> EpisodeZones:
         return EpisodeZones([a.inflate(radius) for a in self.areas], self.assignment)
 
-
-def select_rows(area: RestrictedArea, rows: Tensor) -> RestrictedArea:
-    """The area that answers for rows `rows` of a batch: a batch-aware area keeps those rows'
-    zones; any other area is the same for every row."""
-    if isinstance(area, EpisodeZones):
-        return EpisodeZones(area.areas, area.assignment[rows])
-    return area
-
-
-def bounded_area(area: RestrictedArea, size: float) -> RestrictedArea:
-    """The area plus everything outside the [0, size]^2 workspace.
-
-    Without it a zone touching a wall (the paper's left bands) has its wall side as a
-    boundary, and "the nearest way out" would lead through the wall, off the workspace.
-    """
-    if isinstance(area, EpisodeZones):
-        return EpisodeZones([bounded_area(a, size) for a in area.areas], area.assignment)
-    if not isinstance(area, ZoneSet):
-        return area  # a user's own check: its author decides what lies outside
-    frame = shapely.box(-size, -size, 2 * size, 2 * size).difference(shapely.box(0, 0, size, size))
-    bounded = ZoneSet([*shapely.get_parts(area.geometry), frame])
-    bounded.compute_dtype = area.compute_dtype
-    return bounded
-
-
-def inflate_area(area: RestrictedArea, radius: float) -> RestrictedArea:
-    """Grows an area by a radius when it knows how (ZoneSet, EpisodeZones); others are kept."""
-    if radius <= 0:
-        return area
-    if isinstance(area, ZoneSet | EpisodeZones):
-        return area.inflate(radius)
-    raise ValueError(f"{type(area).__name__} cannot be inflated; implement inflate(radius)")
+    def _bounded(self, workspace: Bounds) -> EpisodeZones:
+        return EpisodeZones([a.bounded(workspace) for a in self.areas], self.assignment)

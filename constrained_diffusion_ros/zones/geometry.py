@@ -4,7 +4,7 @@ Inference hooks keep diffusion waypoints out of restricted zones by asking a `Re
 about whole action chunks at once, so every query takes points of shape (..., 2) in workspace px
 and answers for all of them without Python loops.
 
-`ZoneSet` implements it for a union of polygons: shapely validates and merges the polygons once,
+`ZoneSet` implements it exactly for a union of polygons: shapely validates and merges the polygons once,
 then the edges of the union's boundary rings are stored as tensors (E, 2) (starts, directions,
 normals, ...) that every query broadcasts against. Rings are oriented so the area always lies
 left of each edge (exteriors counter-clockwise, holes clockwise), which gives every edge an
@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
-from typing import Protocol, runtime_checkable
 
 import numpy as np
 import shapely
@@ -28,41 +27,11 @@ import torch
 from numpy.typing import ArrayLike
 from torch import Tensor
 
+from constrained_diffusion_ros.zones.area import Bounds, RestrictedArea
+
 QUAD_SEGS = 16
 """Segments per quarter circle when inflating: arcs sag at most r * (1 - cos(pi / 64)) ~ 0.1% r."""
 _FINE_QUAD_SEGS = 64  # for project_out's inflated area: about 0.01% of the margin too far
-
-
-@runtime_checkable
-class RestrictedArea(Protocol):
-    """Anything the hooks can keep waypoints out of; all methods take float points (..., 2) in px.
-
-    Implement it to check zones in another space (e.g. a costmap or the robot's frame).
-    """
-
-    def contains(self, points: Tensor) -> Tensor:
-        """Bool (...): the point lies inside the area."""
-        ...
-
-    def signed_distance(self, points: Tensor) -> Tensor:
-        """(...): distance to the nearest boundary, negative inside, positive outside."""
-        ...
-
-    def outward_direction(self, points: Tensor) -> Tensor:
-        """(..., 2) unit vectors out by the nearest boundary (outside points: away from it)."""
-        ...
-
-    def project_out(self, points: Tensor, margin: float = 0.0) -> Tensor:
-        """(..., 2): points with clearance below `margin` moved to exactly `margin`; others kept."""
-        ...
-
-    def segment_clear_fraction(self, starts: Tensor, ends: Tensor) -> Tensor:
-        """(...): fraction of each segment travelled before it first enters the area."""
-        ...
-
-    def crosses(self, starts: Tensor, ends: Tensor) -> Tensor:
-        """Bool (...): the segment touches the interior anywhere."""
-        ...
 
 
 def rectangle(x_min: float, y_min: float, x_max: float, y_max: float) -> np.ndarray:
@@ -124,8 +93,8 @@ def _ring_edges(ring: np.ndarray) -> np.ndarray:
     return np.stack([v, d, normal, step, np.roll(step, -1, axis=0), d_in], axis=1)
 
 
-class ZoneSet:
-    """An immutable union of polygons, queried in torch; implements `RestrictedArea`.
+class ZoneSet(RestrictedArea):
+    """An immutable union of polygons, queried in torch, with exact answers to every query.
 
     Overlapping or touching polygons merge into one region, so every answer (inside, distance,
     direction) refers to the union's boundary; points exactly on it may test either way.
@@ -145,7 +114,6 @@ class ZoneSet:
         self._table = np.concatenate(tables) if tables else np.zeros((0, 6, 2))
         self._scale = max(1.0, float(np.abs(self._table[:, 0]).max(initial=0.0)))
         self._tensors: dict[tuple[torch.dtype, torch.device], tuple[Tensor, ...]] = {}
-        self._grown: dict[float, ZoneSet] = {}
 
     @classmethod
     def from_polygons(cls, polygons: Sequence[ArrayLike]) -> ZoneSet:
@@ -182,15 +150,25 @@ class ZoneSet:
     def __repr__(self) -> str:
         return f"ZoneSet({len(self)} polygons, {len(self._table)} edges, area={self.area:.1f})"
 
-    def inflate(self, radius: float, quad_segs: int = QUAD_SEGS) -> ZoneSet:
+    def buffer(self, radius: float, quad_segs: int = QUAD_SEGS) -> ZoneSet:
         """Minkowski sum with a disc (round joins), e.g. to keep a pusher of that radius out.
 
         A negative radius erodes instead. Arcs are polygons with vertices on the true circle,
-        `quad_segs` segments per quarter circle.
+        `quad_segs` segments per quarter circle. `inflate` gives the same, cached.
         """
-        grown = ZoneSet(shapely.get_parts(self._geometry.buffer(radius, quad_segs=quad_segs)))
-        grown.compute_dtype = self.compute_dtype
-        return grown
+        return self._like(shapely.get_parts(self._geometry.buffer(radius, quad_segs=quad_segs)))
+
+    def _like(self, polygons: Iterable[shapely.Polygon]) -> ZoneSet:
+        """A new set of these polygons, computing in this set's dtype."""
+        zones = ZoneSet(polygons)
+        zones.compute_dtype = self.compute_dtype
+        return zones
+
+    def _inflated(self, radius: float) -> ZoneSet:
+        return self.buffer(radius)
+
+    def _bounded(self, workspace: Bounds) -> ZoneSet:
+        return self._like([*shapely.get_parts(self._geometry), _frame(workspace)])
 
     # -- queries -------------------------------------------------------------------------------
 
@@ -383,10 +361,8 @@ class ZoneSet:
         """The area grown so its polygonal arcs stay >= margin away from this one (cached)."""
         if margin == 0:
             return self
-        if margin not in self._grown:
-            radius = margin / math.cos(math.pi / (4 * _FINE_QUAD_SEGS))
-            self._grown[margin] = self.inflate(radius, _FINE_QUAD_SEGS)
-        return self._grown[margin]
+        radius = margin / math.cos(math.pi / (4 * _FINE_QUAD_SEGS))
+        return self._derived(("fine", margin), lambda: self.buffer(radius, _FINE_QUAD_SEGS))
 
     def _box_exit(self, p: Tensor, clearance: float) -> Tensor:
         """Nearest point on the bounding box grown by `clearance`: always clear of the area."""
@@ -396,3 +372,16 @@ class ZoneSet:
         gaps = torch.cat([p - walls[:2], walls[2:] - p], dim=-1)
         side = gaps.argmin(dim=-1, keepdim=True)
         return p.scatter(-1, side % 2, walls.expand_as(gaps).gather(-1, side))
+
+
+def _frame(workspace: Bounds) -> shapely.Polygon:
+    """The outside of the workspace rectangle, out to its own size beyond each side."""
+    x_min, y_min, x_max, y_max = workspace
+    width, height = x_max - x_min, y_max - y_min
+    outer = shapely.box(x_min - width, y_min - height, x_max + width, y_max + height)
+    return outer.difference(shapely.box(x_min, y_min, x_max, y_max))
+
+
+def outside_of(workspace: Bounds) -> ZoneSet:
+    """Everything outside the workspace rectangle (to its own size beyond), as a zone."""
+    return ZoneSet([_frame(workspace)])

@@ -90,6 +90,16 @@ class LiveZones:
     def version(self) -> int:
         return self._version
 
+    # The executor's zone source: the same zones for every step and episode, until they change.
+
+    def area_at(self, step: int) -> ZoneSet | None:
+        """The zones in force, or None when there are none."""
+        snapshot = self.snapshot()
+        return None if snapshot.is_empty else snapshot
+
+    def version_at(self, step: int) -> int:
+        return self._version
+
     @property
     def ids(self) -> list[ZoneId]:
         """Ids in force, in insertion order."""

@@ -4,7 +4,7 @@ way there?
 Commanded setpoints outside the inflated zones are not enough: the pusher follows a PD law,
 carries its velocity into the next setpoint and cuts corners, so its disc can dip into a zone
 between setpoints. The pusher is kinematic, so its path is known exactly from its position,
-velocity and setpoint (`sim_bridge.pusher_transition`). The shield accepts a setpoint only if
+velocity and setpoint (`RobotModel.transition`). The shield accepts a setpoint only if
 holding it from now on keeps the pusher centre outside the area inflated by its radius; else it
 takes the largest step from the last accepted setpoint towards it that does. The last accepted
 setpoint was itself checked from the previous state, so a safe choice exists as long as the
@@ -17,9 +17,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from constrained_diffusion_ros.zones.episodes import select_rows
-from constrained_diffusion_ros.zones.geometry import RestrictedArea
-from sim_bridge import SIM_HZ, SUBSTEPS, pusher_transition
+from constrained_diffusion_ros.planning.robot import RobotModel
+from constrained_diffusion_ros.zones.area import RestrictedArea
 
 # Fractions of the way from the last accepted setpoint to the planned one, tried largest first.
 FRACTIONS = (0.75, 0.5, 0.25, 0.0)  # after the whole way (1.0) was refused
@@ -29,11 +28,12 @@ class PusherShield:
     """Filters (B, 2) setpoints for a batch of pushers; `area` is already inflated by the
     pusher radius, so a pusher centre outside it means a disc outside the zones."""
 
-    def __init__(self, horizon_s: float = 0.6, margin: float = 0.5, escape: float = 20.0) -> None:
-        substeps = max(SUBSTEPS, round(horizon_s * SIM_HZ))
-        coefficients = pusher_transition(substeps)  # (H, 2, 3)
+    def __init__(self, robot: RobotModel, horizon_s: float = 0.6, margin: float = 0.5,
+                 escape: float = 20.0) -> None:
+        substeps = max(robot.substeps, round(horizon_s * robot.physics_hz))
+        coefficients = robot.transition(substeps)  # (H, 2, 3)
         self.path = torch.from_numpy(coefficients[:, 0])  # position after each substep
-        self.control_step = coefficients[SUBSTEPS - 1]  # (2, 3) one control step
+        self.control_step = coefficients[robot.substeps - 1]  # (2, 3) one control step
         self.fractions = torch.tensor(FRACTIONS, dtype=torch.float64)
         self.reach = (self.path[:, 2].abs().max(), self.path[:, 1].abs().max())
         self.margin, self.escape = margin, escape
@@ -73,7 +73,7 @@ class PusherShield:
         near = torch.nonzero(area.signed_distance(p.float()) < reach + self.margin).flatten()
         chosen = goal.clone()
         if len(near):
-            chosen[near] = self._choose(select_rows(area, near), p[near], v[near], start[near],
+            chosen[near] = self._choose(area.select_rows(near), p[near], v[near], start[near],
                                         goal[near])
         result = chosen.numpy()
         self.corrected += int((chosen != goal).any(dim=-1).sum())
@@ -97,7 +97,7 @@ class PusherShield:
         blocked = torch.nonzero(~self._safe(area, p, v, goal[:, None])[:, 0]).flatten()
         if len(blocked) == 0:
             return chosen
-        area, p, v = select_rows(area, blocked), p[blocked], v[blocked]
+        area, p, v = area.select_rows(blocked), p[blocked], v[blocked]
         start, goal = start[blocked], goal[blocked]
         candidates = start[:, None] + self.fractions[None, :, None] * (goal - start)[:, None]
         safe = self._safe(area, p, v, candidates)

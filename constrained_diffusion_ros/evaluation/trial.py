@@ -1,37 +1,33 @@
 """trial: one recorded, constrained PushT trial, every node in its own process.
 
 Starts the recorder, the simulator (lockstep), the zone publisher and the policy node, as a
-launch file would; waits until they have discovered each other; resets the scene to the seed;
-lets the policy act for the requested number of control steps; stops every process cleanly;
-prints score and violations; and leaves, in the output directory, the rosbag2 (MCAP) bag with
-the trial's metadata, a strip of frames (PNG, like the paper's Fig. 1) and an animated GIF.
+launch file would, in a ROS domain of its own; waits until they have discovered each other;
+resets the scene to the seed; lets the policy act for the requested number of control steps;
+stops every process cleanly; prints score and violations; and leaves, in the output directory,
+the rosbag2 (MCAP) bag with the trial's metadata, a strip of frames (PNG, like the paper's
+Fig. 1) and an animated GIF.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
-import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_domain_id
 from constrained_diffusion_ros.evaluation.rollout import RolloutLog
 from constrained_diffusion_ros.evaluation.scenarios import Scenario, load_scenarios
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from msg_schemas import SERVICES, TOPICS
+from msg_schemas.conversions import point_of, pose2d_of, step_of_stamp, zones_shown
 from sim_bridge import CONTROL_HZ
 
-NODES = {  # process name -> python module
-    "recorder": "constrained_diffusion_ros.nodes.recorder",
-    "sim_node": "sim_bridge.sim_node",
-    "zone_publisher": "constrained_diffusion_ros.nodes.zone_publisher",
-    "policy_node": "constrained_diffusion_ros.nodes.policy_node",
-}
+# In lockstep the other nodes wait while the policy plans, so it may use both cores.
+POLICY_THREADS = 2
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -52,50 +48,17 @@ def build_parser() -> argparse.ArgumentParser:
                              " must not exist yet")
     parser.add_argument("--timeout", type=float, default=600.0,
                         help="seconds before the trial gives up")
+    parser.add_argument("--domain-id", type=int, default=None,
+                        help="ROS domain of the trial's nodes (default: a random one in 1..100, "
+                             "so no other node is heard; set it to watch the trial live)")
     return parser
-
-
-class Children:
-    """The trial's processes: started in order, stopped in reverse with SIGINT, then killed."""
-
-    def __init__(self, log_dir: Path) -> None:
-        self.log_dir = log_dir
-        self.processes: dict[str, subprocess.Popen] = {}
-
-    def start(self, name: str, parameters: dict) -> None:
-        args = [sys.executable, "-m", NODES[name], "--ros-args"]
-        for key, value in parameters.items():
-            args += ["-p", f"{key}:={value}"]
-        log = (self.log_dir / f"{name}.log").open("w")
-        self.processes[name] = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT,
-                                                env=os.environ.copy())
-
-    def failed(self) -> str | None:
-        for name, process in self.processes.items():
-            if process.poll() is not None:
-                return f"{name} exited with code {process.returncode} (see {name}.log)"
-        return None
-
-    def stop(self, name: str, timeout: float = 10.0) -> None:
-        process = self.processes.pop(name, None)
-        if process is None or process.poll() is not None:
-            return
-        process.send_signal(signal.SIGINT)
-        try:
-            process.wait(timeout)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
-
-    def stop_all(self) -> None:
-        for name in reversed(list(self.processes)):
-            self.stop(name)
 
 
 def run_trial(args: argparse.Namespace) -> dict:
     import rclpy
     from geometry_msgs.msg import PointStamped, PoseStamped
-    from rclpy.node import Node
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
     from std_srvs.srv import Trigger
     from visualization_msgs.msg import MarkerArray
 
@@ -117,16 +80,15 @@ def run_trial(args: argparse.Namespace) -> dict:
                 "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
     metadata_file.write_text(json.dumps(metadata, indent=2))
 
-    rclpy.init()
-    node = Node("trial")
+    domain_id = random_domain_id() if args.domain_id is None else args.domain_id
+    context = Context()
+    rclpy.init(context=context, domain_id=domain_id)
+    node = rclpy.create_node("trial", context=context)
     received: dict[str, dict[int, object]] = {"pusher": {}, "block": {}, "setpoint": {}}
 
     def keep(kind: str):
         def callback(msg) -> None:
-            header = getattr(msg, "header", None)
-            if header is not None:
-                stamp = header.stamp.sec + header.stamp.nanosec * 1e-9
-                received[kind][round(stamp * CONTROL_HZ)] = msg
+            received[kind][step_of_stamp(msg.header.stamp, CONTROL_HZ)] = msg
         return callback
 
     for topic, kind, msg_type in (("pusher", "pusher", PointStamped),
@@ -137,22 +99,23 @@ def run_trial(args: argparse.Namespace) -> dict:
     zones_in_force: list[int] = []
     node.create_subscription(
         MarkerArray, TOPICS["zone_markers"].name,
-        lambda msg: zones_in_force.append(sum(m.action == m.ADD for m in msg.markers)),
+        lambda msg: zones_in_force.append(zones_shown(msg)),
         qos_profile(TOPICS["zone_markers"]))
     reset = node.create_client(Trigger, SERVICES["reset"].name)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
 
-    children = Children(output)
+    children = NodeProcesses(output, domain_id)
     deadline = time.monotonic() + args.timeout
     try:
-        children.start("recorder", {"output": str(output / "bag"),
-                                    "metadata_file": str(metadata_file)})
-        children.start("sim_node", {"seed": args.seed, "mode": "lockstep",
-                                    "max_steps": args.steps, "autostart": False})
+        children.start("recorder", output=output / "bag", metadata_file=metadata_file)
+        children.start("sim_node", seed=args.seed, mode="lockstep", max_steps=args.steps,
+                       autostart=False)
         if scenario is not None:
-            children.start("zone_publisher", {"scenario": args.scenario})
-        children.start("policy_node", {"model": str(args.model),
-                                       "configuration": args.configuration,
-                                       "configurations_file": args.configurations_file})
+            children.start("zone_publisher", scenario=args.scenario)
+        children.start("policy_node", threads=POLICY_THREADS, model=args.model,
+                       configuration=args.configuration,
+                       configurations_file=args.configurations_file)
 
         def spin_until(condition, what: str) -> None:
             while not condition():
@@ -161,7 +124,7 @@ def run_trial(args: argparse.Namespace) -> dict:
                     raise RuntimeError(failure)
                 if time.monotonic() > deadline:
                     raise RuntimeError(f"timed out waiting for {what}")
-                rclpy.spin_once(node, timeout_sec=0.05)
+                executor.spin_once(timeout_sec=0.05)
 
         def discovered() -> bool:
             setpoint, pusher = TOPICS["setpoint"].name, TOPICS["pusher"].name
@@ -193,8 +156,9 @@ def run_trial(args: argparse.Namespace) -> dict:
             children.stop(name)
         time.sleep(0.5)  # let the recorder take the last messages
         children.stop_all()
+        executor.shutdown()
         node.destroy_node()
-        rclpy.try_shutdown()
+        rclpy.try_shutdown(context=context)
     make_figures(output, scenario, args)
     return metadata
 
@@ -208,16 +172,10 @@ def trial_log(received: dict, seed: int, steps: int) -> RolloutLog:
         if missing:
             raise RuntimeError(f"the trial lacks {kind} messages for steps {missing[:5]}")
 
-    def quaternion_yaw(q) -> float:
-        return 2.0 * np.arctan2(q.z, q.w)
-
-    states = np.array([[received["pusher"][t].point.x, received["pusher"][t].point.y,
-                        received["block"][t].pose.position.x,
-                        received["block"][t].pose.position.y,
-                        quaternion_yaw(received["block"][t].pose.orientation)]
+    states = np.array([np.concatenate([point_of(received["pusher"][t]),
+                                       pose2d_of(received["block"][t])])
                        for t in range(steps + 1)])
-    commanded = np.array([[received["setpoint"][t].point.x, received["setpoint"][t].point.y]
-                          for t in range(steps)])
+    commanded = np.array([point_of(received["setpoint"][t]) for t in range(steps)])
     cov = coverage(states[1:, 2:5])
     return RolloutLog([seed], commanded[None], states[None], cov[None])
 

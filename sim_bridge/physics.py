@@ -1,7 +1,8 @@
-"""ROS-free PushT simulator that reproduces the Diffusion Policy PushT environment.
+"""ROS-free PushT physics (pymunk) that reproduces the Diffusion Policy PushT environment.
 
 The physics mirrors the reference environment closely enough that replaying the recorded
-demonstrations reproduces their states; the quirks kept for that reason are commented.
+demonstrations reproduces their states; the quirks kept for that reason are commented. The
+scene's facts (geometry, goal, score) live in `sim_bridge.scene`.
 """
 
 from __future__ import annotations
@@ -12,83 +13,37 @@ from numbers import Integral
 
 import numpy as np
 import pymunk
-import shapely
 
-WORKSPACE_SIZE = 512.0
-AGENT_RADIUS = 15.0
-AGENT_START = (256.0, 400.0)
-GOAL_POSE = np.array([256.0, 256.0, np.pi / 4])
-SUCCESS_THRESHOLD = 0.95
-CONTROL_HZ = 10
-SIM_HZ = 100
-SUBSTEPS = SIM_HZ // CONTROL_HZ
+from sim_bridge.scene import (
+    AGENT_RADIUS,
+    AGENT_START,
+    COORD_LIMITS,
+    K_P,
+    K_V,
+    SIM_HZ,
+    SUBSTEPS,
+    SUCCESS_THRESHOLD,
+    TEE_BAR,
+    TEE_STEM,
+    WALL_RADIUS,
+    WALLS,
+    WORKSPACE_SIZE,
+    block_keypoints,
+    coverage,
+    observation,
+    score_from_coverage,
+    seeded_state,
+)
+
 DT = 1.0 / SIM_HZ
-K_P = 100.0
-K_V = 20.0
-
-# Commanded targets and positions must lie in this box (the workspace padded by its own size
-# on each side): permissive enough for any real command, but finite and physically sane.
-COORD_LIMITS = (-WORKSPACE_SIZE, 2.0 * WORKSPACE_SIZE)
+TEE_MASS = 1.0
 
 # Shape friction 0: the reference's `body.friction = 1` has no effect in pymunk, and replaying the
 # dataset matches with 0 (median block error 3e-5 px) but not with 1 (median 27 px).
 SHAPE_FRICTION = 0.0
 
-WALL_RADIUS = 2.0
-WALLS = (
-    ((5.0, 506.0), (5.0, 5.0)),
-    ((5.0, 5.0), (506.0, 5.0)),
-    ((506.0, 5.0), (506.0, 506.0)),
-    ((5.0, 506.0), (506.0, 506.0)),
-)
-
-# The T block in body coordinates (scale 30, length 4): crossbar and stem.
-TEE_BAR = np.array([(-60.0, 30.0), (60.0, 30.0), (60.0, 0.0), (-60.0, 0.0)])
-TEE_STEM = np.array([(-15.0, 30.0), (-15.0, 120.0), (15.0, 120.0), (15.0, 30.0)])
-# Outline of the union of the two rectangles, as one valid polygon for area computations.
-TEE_OUTLINE = np.array(
-    [
-        (-60.0, 0.0),
-        (60.0, 0.0),
-        (60.0, 30.0),
-        (15.0, 30.0),
-        (15.0, 120.0),
-        (-15.0, 120.0),
-        (-15.0, 30.0),
-        (-60.0, 30.0),
-    ]
-)
-TEE_MASS = 1.0
-
-# Keypoints of the T in body coordinates, in the dataset's order (fitted to data/keypoint).
-KEYPOINTS_LOCAL = np.array(
-    [
-        [9.269787, 90.040974],
-        [-60.983472, -1.186730],
-        [60.912755, -1.393363],
-        [-0.270504, 25.543625],
-        [-14.064927, 122.815854],
-        [39.002738, 32.857404],
-        [-39.966414, 32.729655],
-        [-16.824344, 62.863179],
-        [23.541461, -1.700288],
-    ]
-)
-
 
 # --------------------------------------------------------------------------- validation
-
-
-def _check_seed(seed: object) -> int:
-    """Seeds feed numpy's legacy RandomState, which takes integers in [0, 2**32)."""
-    # ValueError, not TypeError: callers handle every bad input through one exception type.
-    if isinstance(seed, bool) or not isinstance(seed, Integral):
-        raise ValueError(
-            f"seed must be a non-negative int, got {seed!r} ({type(seed).__name__})"
-        )
-    if not 0 <= int(seed) < 2**32:
-        raise ValueError(f"seed must be in [0, 2**32), got {seed}")
-    return int(seed)
 
 
 def _to_float(value: object, name: str) -> np.ndarray:
@@ -129,91 +84,6 @@ def _check_actions(actions: object, n: int) -> np.ndarray:
     arr = _as_float_array(actions, (n, 2), "actions" if n != 1 else "action")
     _check_coords(arr, "action")
     return arr
-
-
-# --------------------------------------------------------------------------- geometry
-
-
-def _rotation(angles: np.ndarray) -> np.ndarray:
-    """(N,) angles -> (N, 2, 2) rotation matrices."""
-    c, s = np.cos(angles), np.sin(angles)
-    return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
-
-
-def _poses(block_poses: object) -> np.ndarray:
-    arr = np.asarray(block_poses, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise ValueError(f"block_poses must have shape (N, 3), got {arr.shape}")
-    return arr
-
-
-def _transform(local: np.ndarray, poses: np.ndarray) -> np.ndarray:
-    """Body points (K, 2) placed at poses (N, 3) -> world points (N, K, 2)."""
-    rot = _rotation(poses[:, 2])
-    return np.einsum("nij,kj->nki", rot, local) + poses[:, None, :2]
-
-
-def block_keypoints(block_poses: object) -> np.ndarray:
-    """The 9 dataset keypoints of the T for each block pose: (N, 3) -> (N, 9, 2)."""
-    return _transform(KEYPOINTS_LOCAL, _poses(block_poses))
-
-
-def tee_polygons(pose: object) -> list[np.ndarray]:
-    """The T's two rectangles in world coordinates for one pose (x, y, angle)."""
-    p = _poses(np.reshape(np.asarray(pose, dtype=np.float64), (1, 3)))
-    return [_transform(TEE_BAR, p)[0], _transform(TEE_STEM, p)[0]]
-
-
-def _tee_geoms(poses: np.ndarray) -> np.ndarray:
-    return shapely.polygons(_transform(TEE_OUTLINE, poses))
-
-
-_GOAL_GEOM = _tee_geoms(GOAL_POSE[None])[0]
-_GOAL_AREA = float(shapely.area(_GOAL_GEOM))
-
-
-def coverage(block_poses: object) -> np.ndarray:
-    """Fraction of the goal T covered by the block T for each pose: (N, 3) -> (N,)."""
-    blocks = _tee_geoms(_poses(block_poses))
-    return shapely.area(shapely.intersection(blocks, _GOAL_GEOM)) / _GOAL_AREA
-
-
-def score_from_coverage(cov: np.ndarray) -> np.ndarray:
-    """Reward as in the reference: coverage scaled so that reaching the threshold scores 1."""
-    return np.clip(np.asarray(cov) / SUCCESS_THRESHOLD, 0.0, 1.0)
-
-
-def seeded_state(seed: int) -> np.ndarray:
-    """Initial state for a seed, drawn exactly as the reference environment draws it."""
-    rs = np.random.RandomState(_check_seed(seed))
-    return np.array(
-        [
-            rs.randint(50, 450),
-            rs.randint(50, 450),
-            rs.randint(100, 400),
-            rs.randint(100, 400),
-            rs.randn() * 2 * np.pi - np.pi,
-        ],
-        dtype=np.float64,
-    )
-
-
-def pusher_transition(n_substeps: int) -> np.ndarray:
-    """(n_substeps, 2, 3): entry k maps one axis's (position, velocity, setpoint) to its
-    (position, velocity) after k + 1 physics substeps with the setpoint held.
-
-    The pusher is kinematic: contacts never move it, so its PD law alone decides its path and
-    a controller can predict it exactly (see `_step_unchecked` for the law).
-    """
-    one = np.array([
-        [1.0 - DT * DT * K_P, DT * (1.0 - DT * K_V), DT * DT * K_P],
-        [-DT * K_P, 1.0 - DT * K_V, DT * K_P],
-        [0.0, 0.0, 1.0],
-    ])
-    powers = [one]
-    for _ in range(n_substeps - 1):
-        powers.append(one @ powers[-1])
-    return np.stack(powers)[:, :2]
 
 
 # --------------------------------------------------------------------------- simulator
@@ -318,7 +188,7 @@ class PushTSim:
     def observation(self) -> np.ndarray:
         """(20,): the 9 keypoints flattened, then the pusher position (dataset obs layout)."""
         p = self._agent.position
-        return np.concatenate([self.keypoints().reshape(-1), [p.x, p.y]])
+        return observation(self.keypoints(), np.array([p.x, p.y]))
 
     def coverage(self) -> float:
         return float(coverage(self.block_pose[None])[0])
@@ -383,8 +253,7 @@ class PushTBatch:
         return block_keypoints(self.block_poses)
 
     def observations(self) -> np.ndarray:
-        agents = self.states[:, :2]
-        return np.concatenate([self.keypoints().reshape(len(self), -1), agents], axis=1)
+        return observation(self.keypoints(), self.states[:, :2])
 
     def coverage(self) -> np.ndarray:
         return coverage(self.block_poses)

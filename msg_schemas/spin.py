@@ -1,4 +1,6 @@
-"""The shared `main()` body of the package's nodes: init, build, spin, shut down quietly."""
+"""The shared `main()` body of every node of the package: init, build, spin, shut down quietly.
+
+Part of the ROS interface layer so that the simulator node and the policy-side nodes run alike."""
 
 from __future__ import annotations
 

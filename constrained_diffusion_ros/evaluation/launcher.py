@@ -1,0 +1,107 @@
+"""Node processes for a trial, a benchmark or a test: one launcher, as a launch file would do it.
+
+Each caller picks the ROS domain its nodes run in (so runs side by side do not hear each
+other) and every process gets its compute threads set on purpose: torch takes one thread per
+core by default, and several processes doing so on a small machine slow each other down many
+times over. Processes stop like Ctrl-C (SIGINT), and are killed if they do not.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+NODES = {  # executable name -> python module (the console scripts of setup.py)
+    "policy_node": "constrained_diffusion_ros.nodes.policy_node",
+    "zone_publisher": "constrained_diffusion_ros.nodes.zone_publisher",
+    "recorder": "constrained_diffusion_ros.nodes.recorder",
+    "sim_node": "sim_bridge.sim_node",
+}
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def random_domain_id() -> int:
+    """A ROS domain id in [1, 100], so a run is unlikely to share its domain with another."""
+    return random.SystemRandom().randint(1, 100)
+
+
+def parameter_text(value: object) -> str:
+    """A value as `--ros-args -p name:=value` wants it."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    return str(value)
+
+
+class NodeProcesses:
+    """Started node processes, by name; logs go to `log_dir/<name>.log`."""
+
+    def __init__(self, log_dir: Path, domain_id: int, threads: int = 1) -> None:
+        self.log_dir, self.domain_id, self.threads = Path(log_dir), domain_id, threads
+        self.processes: dict[str, subprocess.Popen] = {}
+
+    def environment(self, threads: int | None = None) -> dict[str, str]:
+        threads = str(threads or self.threads)
+        return {**os.environ, "ROS_DOMAIN_ID": str(self.domain_id), "OMP_NUM_THREADS": threads,
+                "MKL_NUM_THREADS": threads, "PYTHONUNBUFFERED": "1",
+                "RCUTILS_LOGGING_BUFFERED_STREAM": "0",
+                "ROS_LOG_DIR": str(self.log_dir / "ros_log")}
+
+    def start(self, name: str, node: str | None = None, remap: dict[str, str] | None = None,
+              threads: int | None = None, **parameters: object) -> Path:
+        """Starts executable `node` (default: `name`) with parameters and remappings; returns
+        its log file."""
+        args = [sys.executable, "-m", NODES[node or name], "--ros-args"]
+        for source, target in (remap or {}).items():
+            args += ["-r", f"{source}:={target}"]
+        for key, value in parameters.items():
+            args += ["-p", f"{key}:={parameter_text(value)}"]
+        log = self.log_dir / f"{name}.log"
+        with log.open("w") as out:
+            self.processes[name] = subprocess.Popen(
+                args, cwd=ROOT, env=self.environment(threads), stdout=out,
+                stderr=subprocess.STDOUT)
+        return log
+
+    def failed(self) -> str | None:
+        """Which process has exited, if any (while all should run)."""
+        for name, process in self.processes.items():
+            if process.poll() is not None:
+                return f"{name} exited with code {process.returncode} (see " \
+                       f"{self.log_dir / (name + '.log')})"
+        return None
+
+    def stop(self, name: str, timeout: float = 10.0) -> int | None:
+        """SIGINT, then kill after `timeout`; returns the exit code (None: not running)."""
+        process = self.processes.pop(name, None)
+        if process is None:
+            return None
+        if process.poll() is None:
+            process.send_signal(signal.SIGINT)
+        return _wait(process, timeout)
+
+    def stop_all(self, timeout: float = 10.0) -> None:
+        """All at once, then wait: they stop in parallel."""
+        for process in self.processes.values():
+            if process.poll() is None:
+                process.send_signal(signal.SIGINT)
+        for process in self.processes.values():
+            _wait(process, timeout)
+        self.processes.clear()
+
+    def __enter__(self) -> NodeProcesses:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.stop_all()
+
+
+def _wait(process: subprocess.Popen, timeout: float) -> int:
+    try:
+        return process.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        return process.wait()

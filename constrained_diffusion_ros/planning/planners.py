@@ -1,0 +1,205 @@
+"""Planners: a constraint configuration applied to a policy, for the node and the evaluation.
+
+A planner turns observation histories and the zones in force into constrained action chunks,
+names the area its chunks keep their waypoints out of (so the executor can tell when new zones
+invalidate a chunk), and, with the shield, has the last word on each executed setpoint. The
+executor drives any planner through these three methods (`ChunkPlanner`), for some rows of its
+batch of episodes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Protocol
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from constrained_diffusion_ros.planning.config import ConstraintConfig
+from constrained_diffusion_ros.planning.robot import RobotModel
+from constrained_diffusion_ros.planning.shield import PusherShield
+from constrained_diffusion_ros.policy.config import PolicyConfig
+from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
+from constrained_diffusion_ros.sampling.hooks import (
+    FinalProjection,
+    GradientPush,
+    OnRows,
+    PathRepair,
+    Resampling,
+)
+from constrained_diffusion_ros.sampling.sampler import DenoisingSampler, SampleHook
+from constrained_diffusion_ros.zones.area import RestrictedArea
+
+
+class ChunkPlanner(Protocol):
+    """What the chunk executor needs. `zones` answer for the rows asked about (a batch-aware
+    area, or one area for all), or are None when no zone is in force."""
+
+    @property
+    def policy_config(self) -> PolicyConfig: ...
+
+    def plan(self, observations: Tensor, zones: RestrictedArea | None, rows: np.ndarray,
+             generator: torch.Generator | None) -> Tensor:
+        """(R, n_obs_steps, obs_dim) histories of rows `rows` -> (R, horizon, 2) chunks."""
+        ...
+
+    def violates(self, waypoints: Tensor, zones: RestrictedArea | None,
+                 rows: np.ndarray) -> Tensor:
+        """Bool (R, N): which waypoints (R, N, 2) of rows `rows` lie where its plans keep
+        waypoints out of."""
+        ...
+
+    def guard(self, zones: RestrictedArea | None, observations: np.ndarray,
+              setpoints: np.ndarray, step: int) -> np.ndarray:
+        """(B, 2) setpoints about to be executed at control step `step`, for the whole batch
+        (latest observations (B, obs_dim)) -> the setpoints to execute."""
+        ...
+
+    def reset(self) -> None:
+        """A new episode begins."""
+        ...
+
+
+class ConstrainedPlanner:
+    """One configuration applied to one policy: the same code path for evaluation and nodes."""
+
+    def __init__(self, policy: DiffusionPolicy, config: ConstraintConfig,
+                 robot: RobotModel) -> None:
+        self.policy, self.config, self.robot = policy, config, robot
+        self.sampler = DenoisingSampler(policy, config.sampler, config.denoising_steps)
+        self.shield = PusherShield(robot) if config.shield else None
+
+    @property
+    def policy_config(self) -> PolicyConfig:
+        return self.policy.config
+
+    def effective_area(self, zones: RestrictedArea, radius: float | None = None
+                       ) -> RestrictedArea:
+        """The area the hooks see: the zones plus the outside of the workspace, grown by
+        `radius` (default: the pusher radius if the configuration inflates, else 0). Derived
+        areas are cached by the zones themselves."""
+        if radius is None:
+            radius = self.robot.pusher_radius if self.config.inflate else 0.0
+        return zones.bounded(self.robot.workspace).inflate(radius)
+
+    def hooks(self, area: RestrictedArea, pusher: Tensor) -> list[SampleHook]:
+        c, first = self.config, self.policy.config.first_executed
+        hooks: list[SampleHook] = []
+        if c.resample:
+            hooks.append(Resampling(area))
+        if c.push > 0:
+            hooks.append(GradientPush(area, c.push))
+        if c.project:
+            hooks.append(FinalProjection(area, c.margin))
+        if c.path_repair:
+            hooks.append(PathRepair(area, pusher, first, c.margin))
+        return hooks
+
+    def plan(self, observations: Tensor, zones: RestrictedArea | None,
+             rows: np.ndarray | None = None, generator: torch.Generator | None = None
+             ) -> Tensor:
+        """(B, n_obs_steps, obs_dim) -> (B, horizon, 2) workspace setpoints."""
+        if zones is None or not self.config.constrains:
+            return self.sampler.sample(observations, generator)
+        area = self.effective_area(zones)
+        if self.config.from_scratch:
+            return self._from_scratch(observations, area, generator)
+        pusher = self.robot.pusher(observations[:, -1])
+        return self.sampler.sample(observations, generator, self.hooks(area, pusher))
+
+    def violates(self, waypoints: Tensor, zones: RestrictedArea | None,
+                 rows: np.ndarray | None = None) -> Tensor:
+        if zones is None or not self.config.constrains:
+            return torch.zeros(waypoints.shape[:-1], dtype=torch.bool)
+        return self.effective_area(zones).contains(waypoints)
+
+    def guard(self, zones: RestrictedArea | None, observations: np.ndarray,
+              setpoints: np.ndarray, step: int) -> np.ndarray:
+        if self.shield is None:
+            return setpoints
+        positions = self.robot.pusher(observations).astype(float)
+        # The shield keeps the pusher's body out: it always sees the zones grown by its radius.
+        body = None if zones is None else self.effective_area(zones, self.robot.pusher_radius)
+        return self.shield(body, positions, setpoints, step)
+
+    def reset(self) -> None:
+        """A new episode: the shield forgets the last one."""
+        if self.shield is not None:
+            self.shield.reset()
+
+    def _from_scratch(self, observations: Tensor, area: RestrictedArea,
+                      generator: torch.Generator | None) -> Tensor:
+        """The baseline the paper argues against: N whole chunks per episode in one batch; keep
+        the first whose executed waypoints all lie outside, else the one with fewest inside."""
+        n, (batch, *rest) = self.config.from_scratch, observations.shape
+        repeated = observations[:, None].expand(batch, n, *rest).reshape(batch * n, *rest)
+        chunks = self.sampler.sample(repeated, generator).reshape(batch, n, -1, 2)
+        first = self.policy.config.first_executed
+        executed = chunks[:, :, first: first + self.policy.config.n_action_steps]
+        candidates = executed.reshape(batch, -1, 2)
+        inside = area.contains(candidates).reshape(batch, n, -1).sum(dim=-1)
+        # Fewest violations; ties go to the earliest candidate ("the first that fits").
+        order = inside * n + torch.arange(n)
+        chosen = chunks[torch.arange(batch), order.argmin(dim=1)]
+        return area.project_out(chosen, self.config.margin) if self.config.project else chosen
+
+
+class MixedPlanner:
+    """Configurations with one `sampler_key`, planned as one batch: a single network call per
+    denoising step for all their episodes, each configuration's hooks and shield on its own
+    rows (`owner[b]` is the configuration of row b). On two CPU cores the network costs about
+    0.4 ms per sample in a batch of 600, 0.8 ms in one of 25."""
+
+    def __init__(self, policy: DiffusionPolicy, configs: Sequence[ConstraintConfig],
+                 robot: RobotModel, owner: np.ndarray) -> None:
+        if len({c.sampler_key for c in configs}) != 1:
+            raise ValueError("a mixed batch needs configurations with one sampler and no "
+                             "from-scratch sampling among several")
+        self.planners = [ConstrainedPlanner(policy, c, robot) for c in configs]
+        self.owner, self.robot = np.asarray(owner), robot
+
+    @property
+    def policy_config(self) -> PolicyConfig:
+        return self.planners[0].policy_config
+
+    def _by_config(self, rows: np.ndarray):
+        """(planner, positions within `rows` that are its) per configuration that constrains."""
+        owner = self.owner[rows]
+        for index, planner in enumerate(self.planners):
+            mine = np.nonzero(owner == index)[0]
+            if len(mine) and planner.config.constrains:
+                yield planner, mine
+
+    def plan(self, observations: Tensor, zones: RestrictedArea | None, rows: np.ndarray,
+             generator: torch.Generator | None = None) -> Tensor:
+        if len(self.planners) == 1:
+            return self.planners[0].plan(observations, zones, rows, generator)
+        hooks: list[SampleHook] = []
+        for planner, mine in self._by_config(rows) if zones is not None else ():
+            area = planner.effective_area(zones.select_rows(mine))
+            pusher = self.robot.pusher(observations[mine, -1])
+            mine_rows = torch.from_numpy(mine)
+            hooks += [OnRows(hook, mine_rows) for hook in planner.hooks(area, pusher)]
+        return self.planners[0].sampler.sample(observations, generator, hooks)
+
+    def violates(self, waypoints: Tensor, zones: RestrictedArea | None,
+                 rows: np.ndarray) -> Tensor:
+        inside = torch.zeros(waypoints.shape[:-1], dtype=torch.bool)
+        for planner, mine in self._by_config(rows) if zones is not None else ():
+            inside[mine] = planner.violates(waypoints[mine], zones.select_rows(mine))
+        return inside
+
+    def guard(self, zones: RestrictedArea | None, observations: np.ndarray,
+              setpoints: np.ndarray, step: int) -> np.ndarray:
+        out = setpoints
+        for planner, rows in self._by_config(np.arange(len(self.owner))):
+            if planner.shield is not None:
+                out = out.copy() if out is setpoints else out
+                own = None if zones is None else zones.select_rows(rows)
+                out[rows] = planner.guard(own, observations[rows], setpoints[rows], step)
+        return out
+
+    def reset(self) -> None:
+        for planner in self.planners:
+            planner.reset()

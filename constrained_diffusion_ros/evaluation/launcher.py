@@ -51,9 +51,10 @@ class NodeProcesses:
                 "ROS_LOG_DIR": str(self.log_dir / "ros_log")}
 
     def start(self, name: str, node: str | None = None, remap: dict[str, str] | None = None,
-              threads: int | None = None, **parameters: object) -> Path:
+              threads: int | None = None, **parameters: object
+              ) -> tuple[subprocess.Popen, Path]:
         """Starts executable `node` (default: `name`) with parameters and remappings; returns
-        its log file."""
+        the process and its log file."""
         args = [sys.executable, "-m", NODES[node or name], "--ros-args"]
         for source, target in (remap or {}).items():
             args += ["-r", f"{source}:={target}"]
@@ -64,7 +65,7 @@ class NodeProcesses:
             self.processes[name] = subprocess.Popen(
                 args, cwd=ROOT, env=self.environment(threads), stdout=out,
                 stderr=subprocess.STDOUT)
-        return log
+        return self.processes[name], log
 
     def failed(self) -> str | None:
         """Which process has exited, if any (while all should run)."""

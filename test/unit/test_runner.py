@@ -15,9 +15,9 @@ from constrained_diffusion_ros.evaluation import evaluate
 from constrained_diffusion_ros.evaluation.rollout import RolloutLog
 from constrained_diffusion_ros.evaluation.runner import cell_metrics, evaluate_configurations
 from constrained_diffusion_ros.evaluation.scenarios import Scenario, load_scenarios
+from constrained_diffusion_ros.planning.config import ConstraintConfig
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.weights import save_policy
-from constrained_diffusion_ros.sampling.constraints import ConstraintConfig
 from sim_bridge import WORKSPACE_SIZE
 
 W = WORKSPACE_SIZE

@@ -1,4 +1,5 @@
-"""Whole trials over real DDS: the simulator, the policy and zone publishers as separate processes.
+"""policy_node over real DDS, in a loop with the simulator closed through the test: a zone
+from another process obeyed, malformed ones refused, and a removed zone no longer obeyed.
 
 The policy is a tiny random network (saved to a temporary directory) with 5-step DDIM
 configurations, so a trial takes seconds. Its unconstrained setpoints are noise-like and pile up
@@ -10,47 +11,17 @@ fixed steps); the waits only absorb process start-up and discovery.
 
 from __future__ import annotations
 
-import json
-import signal
-import subprocess
-import sys
-from pathlib import Path
-
-import imageio.v3 as iio
 import numpy as np
-import pytest
 import shapely
-import yaml
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import Point32, PointStamped, PolygonInstanceStamped, PolygonStamped
-from ros_helpers import (
-    REPO,
-    Processes,
-    Ros,
-    child_env,
-    random_domain_id,
-    stamp_step,
-)
+from ros_helpers import Ros, stamp_step, step_stamp
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from constrained_diffusion_ros.evaluation.bags import read_messages, read_trial
-from constrained_diffusion_ros.evaluation.runner import evaluate_configuration
-from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
-from constrained_diffusion_ros.policy.weights import load_policy, save_policy
-from constrained_diffusion_ros.sampling.constraints import load_configurations
 from msg_schemas import FRAME_ID, SERVICES, TOPICS
-from sim_bridge.sim_node import sim_stamp
 
-DOMAIN_ID = random_domain_id()
 SEED = 100000
-CONFIGURATIONS = {
-    "fast_project": {"sampler": "ddim", "denoising_steps": 5, "project": True},
-    "fast_none": {"sampler": "ddim", "denoising_steps": 5},
-    "fast_inflated": {"sampler": "ddim", "denoising_steps": 5, "project": True, "inflate": True},
-    "fast_safe": {"sampler": "ddim", "denoising_steps": 5, "project": True, "inflate": True,
-                  "shield": True},
-}
 ZONE_ID = 7
 ZONE = ((0.0, 0.0), (512.0, 0.0), (512.0, 64.0), (0.0, 64.0))  # the top band, see above
 ZONE_SHAPE = shapely.Polygon(ZONE)
@@ -60,35 +31,6 @@ PRE_ZONE_STEPS = 12  # mid-chunk (chunks of 8 start at steps 0, 8, 16, ...)
 PROBE_STEP = 10_000  # stamps of the test's own probe observations: far past any trial step
 # The sim's setpoint input is remapped here, so only setpoints the test forwards reach it.
 GATED_SETPOINT = TOPICS["setpoint"].name + "_gated"
-
-POLICY_NODE = "constrained_diffusion_ros.nodes.policy_node"
-ZONE_PUBLISHER = "constrained_diffusion_ros.nodes.zone_publisher"
-
-
-@pytest.fixture
-def tiny_model(make_tiny_policy, tmp_path) -> Path:
-    return save_policy(make_tiny_policy(0), tmp_path / "tiny_policy")
-
-
-@pytest.fixture
-def configurations_file(tmp_path) -> Path:
-    path = tmp_path / "configurations.yaml"
-    path.write_text(yaml.safe_dump(CONFIGURATIONS))
-    return path
-
-
-@pytest.fixture
-def ros():
-    handle = Ros(DOMAIN_ID, "test_trial")
-    yield handle
-    handle.close()
-
-
-@pytest.fixture
-def processes(tmp_path):
-    started = Processes(tmp_path, DOMAIN_ID)
-    yield started
-    started.stop_all()
 
 
 def depth(msg: PointStamped) -> float:
@@ -164,7 +106,7 @@ class GatedLoop:
             return any(step >= PROBE_STEP for step in self.setpoints)
 
         for step in range(PROBE_STEP, PROBE_STEP + 40):  # a new stamp each: never a repeat
-            stamp = sim_stamp(step)
+            stamp = step_stamp(step)
             keypoints = PolygonStamped()
             keypoints.header.stamp, keypoints.header.frame_id = stamp, FRAME_ID
             keypoints.polygon.points = [Point32(x=256.0, y=256.0 + i, z=0.0) for i in range(9)]
@@ -213,10 +155,10 @@ class GatedLoop:
 def test_zone_from_another_process_obeyed_refused_and_removed(
         ros, processes, tiny_model, configurations_file):
     loop = GatedLoop(ros)
-    _, sim_log = processes.start("sim_bridge.sim_node", "sim_node",
+    _, sim_log = processes.start("sim_node",
                                  remap={TOPICS["setpoint"].name: GATED_SETPOINT},
                                  seed=SEED, mode="lockstep", autostart=False)
-    policy, policy_log = processes.start(POLICY_NODE, "policy_node", model=tiny_model,
+    policy, policy_log = processes.start("policy_node", model=tiny_model,
                                          configurations_file=configurations_file,
                                          configuration="fast_project")
 
@@ -233,8 +175,8 @@ def test_zone_from_another_process_obeyed_refused_and_removed(
     assert sum(depth(m) > 1.0 for m in unconstrained) >= 2, \
         "the tiny policy no longer goes where the zone will be: the test would be vacuous"
     text = ";".join(f"{x:g},{y:g}" for x, y in ZONE)
-    adder, _ = processes.start(ZONE_PUBLISHER, "zone_publisher_add", polygon=text,
-                               zone_id=ZONE_ID, rate_hz=0.0)  # once, latched
+    processes.start("zone_publisher_add", "zone_publisher", polygon=text,
+                    zone_id=ZONE_ID, rate_hz=0.0)  # once, latched
     assert ros.spin_until(lambda: loop.zones_shown() is not None and len(loop.zones_shown()) == 1),\
         f"the policy never showed the zone:\n{logs()}"
     shown = loop.zones_shown()[0]
@@ -272,8 +214,8 @@ def test_zone_from_another_process_obeyed_refused_and_removed(
 
     # (b) Removal by another zone_publisher process (empty polygon for id 7): the policy is free
     # to enter the former zone again, and the tiny policy does within a few chunks.
-    assert Processes.stop(adder) == 0  # rate 0: it would not re-send anyway
-    processes.start(ZONE_PUBLISHER, "zone_publisher_remove", remove_id=ZONE_ID, rate_hz=0.0)
+    assert processes.stop("zone_publisher_add") == 0  # rate 0: it would not re-send anyway
+    processes.start("zone_publisher_remove", "zone_publisher", remove_id=ZONE_ID, rate_hz=0.0)
     assert ros.spin_until(lambda: loop.zones_shown() == []), \
         f"the policy never removed the zone:\n{logs()}"
     first_free = loop.forwarded + 1
@@ -288,66 +230,3 @@ def test_zone_from_another_process_obeyed_refused_and_removed(
     assert "Traceback" not in sim_log.read_text()
 
 
-def test_trial_command_records_the_batched_evaluation(tiny_model, configurations_file, tmp_path):
-    """`trial` end to end, checked against the ROS-free batched evaluation of the same episode.
-
-    left_0.5 / fast_safe (projection, inflation, shield) / seed 100019: the tiny policy scores
-    s > 0 there and, unconstrained (fast_none), commands setpoints inside the zone, so equal s
-    and r = 0 are not vacuous; the shield changes setpoints there, in both alike."""
-    scenario_name, seed, steps = "left_0.5", 100019, 16
-    output = tmp_path / "trial"
-    command = [sys.executable, "-m", "constrained_diffusion_ros.nodes.trial",
-               "--scenario", scenario_name, "--configuration", "fast_safe",
-               "--configurations-file", str(configurations_file), "--seed", str(seed),
-               "--steps", str(steps), "--output", str(output), "--model", str(tiny_model),
-               "--timeout", "60"]
-    process = subprocess.Popen(command, cwd=REPO, env=child_env(DOMAIN_ID % 100 + 1, tmp_path),
-                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
-        out, _ = process.communicate(timeout=90)
-    finally:
-        if process.poll() is None:  # the trial stops its own nodes on SIGINT
-            process.send_signal(signal.SIGINT)
-            process.communicate(timeout=20)
-    assert process.returncode == 0, out
-    for name in ("bag", "frames.png", "trial.gif", "trial.json"):
-        assert (output / name).exists(), name
-    assert (output / "frames.png").read_bytes().startswith(b"\x89PNG")
-    assert len(iio.imread(output / "trial.gif", index=None)) == steps // 2 + 1
-
-    messages = read_messages(output / "bag")
-    assert set(messages) == {endpoint.name for endpoint in TOPICS.values()}
-    info = yaml.safe_load((output / "bag" / "metadata.yaml").read_text())
-    custom = info["rosbag2_bagfile_information"]["custom_data"]
-    assert json.loads(custom["message_counts"]) == {t: len(m) for t, m in messages.items()}
-    setpoint_steps = [stamp_step(m.header.stamp) for m in messages[TOPICS["setpoint"].name]]
-    # One setpoint per executed step; the policy may also answer the final observation (step
-    # `steps`), which the sim ignores at max_steps, before the trial stops it.
-    assert setpoint_steps[:steps] == list(range(steps))
-    assert setpoint_steps[steps:] in ([], [steps])
-
-    trial = json.loads(custom["trial_metadata"])
-    assert trial == json.loads((output / "trial.json").read_text())
-    assert (trial["scenario"], trial["configuration"], trial["seed"], trial["steps"]) == \
-        (scenario_name, "fast_safe", seed, steps)
-    results = trial["results"]
-
-    policy = load_policy(tiny_model)
-    configurations = load_configurations(configurations_file)
-    scenario = load_scenarios()[scenario_name]
-    (cell,), log = evaluate_configuration(policy, configurations["fast_safe"], [scenario],
-                                          seeds=[seed], n_steps=steps, progress=False)
-    expected = cell.to_dict()
-    assert results == {key: expected[key] for key in results}
-    assert {"s", "r", "final_score", "r_body"} <= set(results)
-    received = read_trial(output / "bag")
-    commanded = [(received["setpoint"][t].point.x, received["setpoint"][t].point.y)
-                 for t in range(steps)]
-    assert np.array_equal(np.array(commanded), log.commanded[0])  # bit for bit
-    assert results["s"] > 0.0 and results["r"] == 0.0
-    (free,), _ = evaluate_configuration(policy, configurations["fast_none"], [scenario],
-                                        seeds=[seed], n_steps=steps, progress=False)
-    assert free.r > 0.0 and free.s != results["s"]
-    _, unshielded = evaluate_configuration(policy, configurations["fast_inflated"], [scenario],
-                                           seeds=[seed], n_steps=steps, progress=False)
-    assert (unshielded.commanded != log.commanded).any()  # the shield acted, in both alike

@@ -6,12 +6,13 @@ import numpy as np
 import pytest
 import torch
 
+from constrained_diffusion_ros.planning.config import ConstraintConfig
+from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
+from constrained_diffusion_ros.planning.shield import PusherShield
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
-from constrained_diffusion_ros.sampling.constraints import ConstrainedPlanner, ConstraintConfig
-from constrained_diffusion_ros.sampling.shield import PusherShield
-from constrained_diffusion_ros.zones import ZoneSet, rectangle
-from constrained_diffusion_ros.zones.episodes import EpisodeZones
-from sim_bridge import AGENT_RADIUS, SUBSTEPS, PushTSim, pusher_transition
+from constrained_diffusion_ros.pusht import PUSHT_ROBOT
+from constrained_diffusion_ros.zones import EpisodeZones, ZoneSet, rectangle
+from sim_bridge import AGENT_RADIUS, PushTSim
 
 ZONE = ZoneSet.from_polygons([rectangle(200, 200, 400, 400)])
 INFLATED = ZONE.inflate(AGENT_RADIUS)
@@ -40,20 +41,8 @@ def clearance(points: np.ndarray) -> np.ndarray:
     return ZONE.signed_distance(torch.from_numpy(points)).numpy()
 
 
-def test_the_pd_model_predicts_the_simulated_pusher_exactly() -> None:
-    sim = PushTSim()
-    sim.set_state(START)
-    one_step = pusher_transition(SUBSTEPS)[-1]
-    position, velocity = sim.state[:2], sim.agent_velocity
-    for setpoint in AROUND_THE_CORNER:
-        predicted = one_step @ np.stack([position, velocity, np.array(setpoint)])
-        sim.step(setpoint)
-        position, velocity = sim.state[:2], sim.agent_velocity
-        np.testing.assert_allclose(predicted, np.stack([position, velocity]), atol=1e-9)
-
-
 def test_the_velocity_comes_back_from_two_positions_and_the_setpoint() -> None:
-    sim, shield = PushTSim(), PusherShield()
+    sim, shield = PushTSim(), PusherShield(PUSHT_ROBOT)
     sim.set_state(START)
     for step, setpoint in enumerate(AROUND_THE_CORNER):
         shield(None, sim.state[None, :2], np.array([setpoint]), step)
@@ -64,7 +53,7 @@ def test_the_velocity_comes_back_from_two_positions_and_the_setpoint() -> None:
 
 
 def test_without_history_the_pusher_is_taken_at_rest_holding_its_position() -> None:
-    shield, position = PusherShield(), np.array([[100.0, 50.0]])
+    shield, position = PusherShield(PUSHT_ROBOT), np.array([[100.0, 50.0]])
     shield(None, position, np.array([[300.0, 300.0]]), step=4)
     for step in (0, 7):  # a new episode, or a gap in the steps
         velocity, held = shield.estimate(position, step)
@@ -78,7 +67,7 @@ def test_setpoints_outside_the_inflated_zone_still_let_the_body_in() -> None:
 
 
 def test_the_shield_keeps_the_body_out_and_still_gets_there() -> None:
-    shield = PusherShield()
+    shield = PusherShield(PUSHT_ROBOT)
     visited = drive(AROUND_THE_CORNER, shield)
     assert clearance(visited).min() >= AGENT_RADIUS
     assert shield.corrected > 0
@@ -87,7 +76,7 @@ def test_the_shield_keeps_the_body_out_and_still_gets_there() -> None:
 
 
 def test_far_from_zones_setpoints_pass_unchanged() -> None:
-    shield = PusherShield()
+    shield = PusherShield(PUSHT_ROBOT)
     setpoints = np.array([[60.0, 60.0], [470.0, 80.0]])
     out = shield(INFLATED, np.array([[50.0, 50.0], [460.0, 60.0]]), setpoints, 0)
     np.testing.assert_array_equal(out, setpoints)
@@ -95,7 +84,7 @@ def test_far_from_zones_setpoints_pass_unchanged() -> None:
 
 
 def test_a_pusher_inside_heads_out_by_the_escape_clearance() -> None:
-    shield = PusherShield(escape=20.0)
+    shield = PusherShield(PUSHT_ROBOT, escape=20.0)
     inside = np.array([[205.0, 300.0]])  # 5 px into the zone: the body overlaps it
     out = shield(INFLATED, inside, np.array([[300.0, 300.0]]), 0)
     assert INFLATED.signed_distance(torch.from_numpy(out)).item() == pytest.approx(20.0, abs=0.1)
@@ -107,15 +96,17 @@ def test_each_episode_is_shielded_from_its_own_zones() -> None:
     areas = EpisodeZones([INFLATED, free], [0, 1])
     inside = np.array([[205.0, 300.0], [205.0, 300.0]])
     target = np.array([[300.0, 300.0], [300.0, 300.0]])
-    out = PusherShield()(areas, inside, target, 0)
+    out = PusherShield(PUSHT_ROBOT)(areas, inside, target, 0)
     assert out[0, 0] < 200 and np.array_equal(out[1], target[1])
 
 
 def test_the_planner_shields_against_the_zones_grown_by_the_pusher_radius(
         tiny_policy: DiffusionPolicy) -> None:
     """Without `inflate` the hooks see the raw zones, the shield still the grown ones."""
-    planner = ConstrainedPlanner(tiny_policy, ConstraintConfig("s", project=True, shield=True))
-    near = np.array([[190.0, 300.0]])  # centre 10 px from the zone: the disc overlaps it
+    planner = ConstrainedPlanner(tiny_policy, ConstraintConfig("s", project=True, shield=True),
+                                 PUSHT_ROBOT)
+    near = np.zeros((1, 20))
+    near[0, 18:] = 190.0, 300.0  # pusher centre 10 px from the zone: the disc overlaps it
     out = planner.guard(ZONE, near, np.array([[300.0, 300.0]]), step=0)
     assert clearance(out)[0] >= AGENT_RADIUS + 19  # the escape: 20 px clear of the grown zone
     free = planner.guard(None, near, np.array([[300.0, 300.0]]), step=1)

@@ -1,0 +1,108 @@
+"""recorder over real DDS: every contract topic into a rosbag2 (MCAP) bag, with metadata."""
+
+from __future__ import annotations
+
+import json
+import signal
+from pathlib import Path
+
+import yaml
+from conftest import SEED
+from diagnostic_msgs.msg import DiagnosticStatus
+from geometry_msgs.msg import PolygonInstanceStamped
+from nav_msgs.msg import Path as PathMsg
+from ros_helpers import stamp_ns
+from rosbags.rosbag2 import Reader
+from rosbags.typesys import Stores, get_typestore
+from visualization_msgs.msg import MarkerArray
+
+from msg_schemas import TOPICS
+
+
+def _bag_counts(bag: Path) -> tuple[dict[str, int], dict[str, list], dict]:
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    counts: dict[str, int] = {}
+    messages: dict[str, list] = {}
+    with Reader(bag) as reader:
+        for connection, _, raw in reader.messages():
+            message = typestore.deserialize_cdr(raw, connection.msgtype)
+            messages.setdefault(connection.topic, []).append(message)
+            counts[connection.topic] = counts.get(connection.topic, 0) + 1
+        types = {c.topic: c for c in reader.connections}
+    return counts, messages, types
+
+
+def test_recorder_writes_every_topic_and_metadata(ros, sim, processes, tmp_path):
+    bag, metadata_file = tmp_path / "bag", tmp_path / "trial.json"
+    metadata_file.write_text(json.dumps({"scenario": "two_zones", "result": None}))
+    recorder, log = processes.start("recorder",
+                                    output=bag, metadata_file=metadata_file)
+    published = {"plan": PathMsg, "policy_status": DiagnosticStatus,
+                 "zone_markers": MarkerArray, "zones": PolygonInstanceStamped}
+    publishers = {topic: ros.publisher(topic, msg_type) for topic, msg_type in published.items()}
+
+    def recorder_matched_all() -> bool:
+        text = log.read_text()
+        return all(f"{e.name}: 1 publisher(s) matched" in text for e in TOPICS.values()) \
+            and sim.setpoint_pub.get_subscription_count() >= 2 \
+            and all(p.get_subscription_count() >= 1 for p in publishers.values())
+
+    assert ros.spin_until(recorder_matched_all), f"recorder not matched:\n{log.read_text()}"
+
+    assert sim.reset(SEED).success  # stamps restart at 0: the steps below are told apart
+    before = sim.stamps()
+    for i in range(3):  # one at a time: each answers the observation in force
+        sim.send(150.0 + 10 * i, 300.0)
+        sim.wait_new_stamps(sim.stamps(), 1)
+    new = sim.stamps()[len(before):]
+    for i in range(2):
+        publishers["plan"].publish(PathMsg())
+        publishers["policy_status"].publish(DiagnosticStatus(name="policy", message=str(i)))
+        publishers["zone_markers"].publish(MarkerArray())
+        zone = PolygonInstanceStamped()
+        zone.polygon.id = 40 + i
+        publishers["zones"].publish(zone)
+    ros.spin_for(0.2)  # let the last messages reach the recorder; it drains its queue on stop
+    metadata_file.write_text(json.dumps({"scenario": "two_zones", "result": {"score": 0.5}}))
+    recorder.send_signal(signal.SIGINT)
+    assert recorder.wait(timeout=15) == 0, log.read_text()
+
+    counts, messages, connections = _bag_counts(bag)
+    assert (bag / "bag.mcap").is_file()
+    # Publishers keep their history (transient local) and the recorder asks for it, so the bag
+    # holds every setpoint this session published, from before the recorder started too.
+    assert counts["/pusht/setpoint"] == sim.sent
+    for topic in published:
+        assert counts.get(TOPICS[topic].name) == 2, topic
+    for topic in ("/pusht/pusher", "/pusht/keypoints", "/pusht/block_pose"):
+        recorded = [stamp_ns(m.header.stamp) for m in messages[topic]]
+        recorded = recorded[len(recorded) - recorded[::-1].index(0):]  # since the last reset
+        assert set(new) <= set(recorded), topic
+        assert all(recorded.count(s) == 1 for s in new[:-1]), topic  # no step recorded twice
+    assert counts["/pusht/score"] >= 3
+    assert sorted(m.polygon.id for m in messages["/pusht/zones"]) == [40, 41]
+    by_name = {endpoint.name: endpoint for endpoint in TOPICS.values()}
+    for topic, connection in connections.items():
+        assert connection.msgtype == by_name[topic].type
+        assert connection.digest.startswith("RIHS01_")
+    assert connections["/pusht/zones"].ext.offered_qos_profiles[0].durability.name == \
+        "TRANSIENT_LOCAL"
+
+    info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert info["storage_identifier"] == "mcap"
+    custom = info["custom_data"]
+    assert json.loads(custom["trial_metadata"]) == {"scenario": "two_zones",
+                                                   "result": {"score": 0.5}}
+    recorded_counts = json.loads(custom["message_counts"])
+    assert set(recorded_counts) == set(by_name)
+    assert {t: n for t, n in recorded_counts.items() if n} == counts
+    assert "closed" in log.read_text() and "Traceback" not in log.read_text()
+
+
+def test_recorder_refuses_existing_bag(processes, tmp_path):
+    (tmp_path / "bag").mkdir()
+    recorder, log = processes.start("recorder_exists", "recorder",
+                                    output=tmp_path / "bag")
+    assert recorder.wait(timeout=20) != 0
+    text = log.read_text()
+    assert "exists" in text and "Traceback" not in text

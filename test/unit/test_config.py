@@ -1,0 +1,63 @@
+"""Constraint configurations from YAML, and the evaluation's labels for them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from constrained_diffusion_ros.evaluation.configurations import load_evaluated
+from constrained_diffusion_ros.paths import config_dir
+from constrained_diffusion_ros.planning.config import ConstraintConfig, load_configurations
+
+# -- Configurations ------------------------------------------------------------------------------
+
+def test_load_configurations_reads_every_entry_of_the_shipped_file() -> None:
+    path = config_dir() / "configurations.yaml"
+    configs = load_configurations(path)
+    assert list(configs) == list(yaml.safe_load(path.read_text()))
+    assert all(name == config.name for name, config in configs.items())
+    assert not configs["none"].constrains
+    r_g10 = configs["r_g10"]
+    assert r_g10.resample and r_g10.push == 10 and not r_g10.project
+    assert configs["ddim10_scratch_8"].from_scratch == 8
+    assert configs["ddim10_scratch_8"].sampler == "ddim"
+
+
+def test_an_unknown_configuration_key_is_refused_by_name(tmp_path: Path) -> None:
+    path = tmp_path / "configurations.yaml"
+    path.write_text("ok: {resample: true}\nbad: {resample: true, lambda: 3}\n")
+    with pytest.raises(ValueError, match="lambda"):
+        load_configurations(path)
+
+
+@pytest.mark.parametrize("entry", [{"push": -1.0}, {"from_scratch": 4, "resample": True},
+                                   {"sampler": "euler"}])
+def test_inconsistent_configurations_are_refused(entry: dict) -> None:
+    with pytest.raises(ValueError, match="'bad'"):
+        ConstraintConfig("bad", **entry)
+
+
+
+
+def test_the_evaluation_labels_every_configuration_and_marks_the_papers_six() -> None:
+    evaluated = load_evaluated(config_dir())
+    assert list(evaluated) == list(load_configurations(config_dir() / "configurations.yaml"))
+    assert evaluated["r_g10"].label == "R + G10" and evaluated["r_g10"].paper
+    assert evaluated["resampling"].scenarios == "paper"
+    paper = {name for name, entry in evaluated.items() if entry.paper}
+    assert len(paper) == 6
+    paper_table = yaml.safe_load((config_dir() / "paper_table1.yaml").read_text())
+    for row in paper_table.values():
+        assert set(row) == paper
+
+
+@pytest.mark.parametrize("text, fault", [("ghost: {label: G}", "ghost"),
+                                         ("none: {label: N, scenarios: some}", "scenarios"),
+                                         ("none: {colour: red}", "colour")])
+def test_bad_evaluation_labels_are_refused_by_name(tmp_path: Path, text: str, fault: str) -> None:
+    (tmp_path / "configurations.yaml").write_text("none: {}\n")
+    (tmp_path / "evaluation.yaml").write_text(text + "\n")
+    with pytest.raises(ValueError, match=fault):
+        load_evaluated(tmp_path)

@@ -1,0 +1,156 @@
+"""The constraint hooks on hand-made samples: resampling, gradient push, projection, path repair."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from samples import CENTRE, L_SHAPE, LEFT_BAND, NORMALIZER, OVERLAPPING, SQUARE, make_step
+
+from constrained_diffusion_ros.sampling.hooks import (
+    FinalProjection,
+    GradientPush,
+    PathRepair,
+    Resampling,
+)
+from constrained_diffusion_ros.zones import ZoneSet, rectangle
+
+# -- Resampling ----------------------------------------------------------------------------------
+
+# Two episodes of four waypoints; those at x in (100, 200) and y in (100, 200) are inside SQUARE.
+HAND_MADE = torch.tensor([[[150.0, 150.0], [20.0, 30.0], [199.0, 101.0], [400.0, 150.0]],
+                          [[300.0, 300.0], [120.0, 180.0], [250.0, 90.0], [101.0, 199.0]]])
+HAND_MADE_INSIDE = torch.tensor([[True, False, True, False], [False, True, False, True]])
+
+
+def test_hand_made_sample_has_the_expected_inside_waypoints() -> None:
+    assert torch.equal(SQUARE.contains(HAND_MADE), HAND_MADE_INSIDE)
+
+
+def test_resampling_replaces_inside_waypoints_by_the_fresh_draw_at_the_first_step() -> None:
+    step = make_step(0)
+    assert step.progress == 0.0
+    out = Resampling(SQUARE)(HAND_MADE.clone(), step)
+    fresh = NORMALIZER.unnormalize(
+        torch.randn(HAND_MADE.shape, generator=torch.Generator().manual_seed(7)))
+    inside = HAND_MADE_INSIDE
+    assert torch.equal(out[inside], fresh[inside])
+    assert torch.equal(out[~inside], HAND_MADE[~inside])
+    # The draw is centred on the action space: N(0, 1) normalised is 256 +- 256 px here.
+    assert not torch.equal(out[inside], HAND_MADE[inside])
+
+
+def test_resampling_leaves_the_sample_unchanged_at_the_last_step() -> None:
+    step = make_step(4)
+    assert step.progress == 1.0
+    out = Resampling(SQUARE)(HAND_MADE.clone(), step)
+    assert torch.equal(out, HAND_MADE)
+
+
+def test_resampling_blends_linearly_in_between() -> None:
+    out = Resampling(SQUARE)(HAND_MADE.clone(), make_step(1, total=5))  # progress 1/4: w = 3/4
+    fresh = NORMALIZER.unnormalize(
+        torch.randn(HAND_MADE.shape, generator=torch.Generator().manual_seed(7)))
+    expected = 0.75 * fresh + 0.25 * HAND_MADE
+    inside = HAND_MADE_INSIDE
+    torch.testing.assert_close(out[inside], expected[inside])
+    assert torch.equal(out[~inside], HAND_MADE[~inside])
+
+
+def test_resampling_draws_nothing_when_no_waypoint_is_inside() -> None:
+    outside = HAND_MADE[:, :2][~HAND_MADE_INSIDE[:, :2]].reshape(2, 1, 2)  # one per episode
+    assert not SQUARE.contains(outside).any()
+    step = make_step(0)
+    out = Resampling(SQUARE)(outside, step)
+    assert torch.equal(out, outside)
+    # The generator was not advanced: its next draw is its first.
+    assert torch.equal(torch.randn(3, generator=step.generator),
+                       torch.randn(3, generator=torch.Generator().manual_seed(7)))
+
+
+# -- Gradient push -------------------------------------------------------------------------------
+
+def test_gradient_push_moves_inside_points_lambda_toward_the_nearest_edge() -> None:
+    points = torch.tensor([[[105.0, 150.0], [150.0, 196.0], [50.0, 150.0], [205.0, 150.0]]])
+    out = GradientPush(SQUARE, 3.0)(points.clone(), make_step(2))
+    torch.testing.assert_close(out[0, 0] - points[0, 0], torch.tensor([-3.0, 0.0]))
+    torch.testing.assert_close(out[0, 1] - points[0, 1], torch.tensor([0.0, 3.0]))
+    assert torch.equal(out[0, 2:], points[0, 2:])  # outside: untouched
+
+
+def test_gradient_push_in_a_concave_zone_heads_for_the_nearest_boundary() -> None:
+    points = torch.tensor([[190.0, 190.0],  # nearest boundary: the notch vertex (200, 200)
+                           [250.0, 180.0],  # horizontal arm, nearest its lower edge y = 200
+                           [170.0, 300.0]])  # vertical arm, nearest its left edge x = 150
+    assert L_SHAPE.contains(points).all()
+    step_size = 4.0
+    out = GradientPush(L_SHAPE, step_size)(points.clone(), make_step(0))
+    diagonal = 1 / math.sqrt(2)
+    expected = torch.tensor([[diagonal, diagonal], [0.0, 1.0], [-1.0, 0.0]]) * step_size
+    torch.testing.assert_close(out - points, expected)
+    # A push that heads for the centroid of the L (about (208, 213)) would go the other way.
+    assert (out[0] - points[0] > 0).all()
+
+
+# -- Final projection ----------------------------------------------------------------------------
+
+def test_final_projection_acts_only_at_the_last_step() -> None:
+    hook = FinalProjection(SQUARE, margin=2.0)
+    for index in range(4):
+        assert torch.equal(hook(HAND_MADE.clone(), make_step(index)), HAND_MADE)
+    out = hook(HAND_MADE.clone(), make_step(4))
+    assert not SQUARE.contains(out).any()
+    assert torch.equal(out[~HAND_MADE_INSIDE], HAND_MADE[~HAND_MADE_INSIDE])
+
+
+@pytest.mark.parametrize("margin", [0.0, 1.0, 5.0])
+@pytest.mark.parametrize("area", [SQUARE, L_SHAPE, OVERLAPPING, LEFT_BAND, CENTRE],
+                         ids=["square", "l_shape", "overlapping", "left_band", "centre"])
+def test_final_projection_leaves_no_waypoint_inside_or_closer_than_the_margin(
+        area: ZoneSet, margin: float) -> None:
+    generator = torch.Generator().manual_seed(3)
+    sample = torch.rand(64, 16, 2, generator=generator) * 512
+    assert area.contains(sample).any()  # otherwise the test proves nothing
+    out = FinalProjection(area, margin)(sample.clone(), make_step(9, total=10))
+    assert not area.contains(out).any()
+    assert area.signed_distance(out).min() >= margin - 1e-4
+    far = area.signed_distance(sample) >= margin
+    assert torch.equal(out[far], sample[far])
+
+
+# -- Path repair ---------------------------------------------------------------------------------
+
+def path_segments(start: torch.Tensor, path: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Segments start -> path[0] -> path[1] -> ... per episode."""
+    return torch.cat([start[:, None], path[:, :-1]], dim=1), path
+
+
+def test_path_repair_pulls_a_crossing_path_back_before_the_zone() -> None:
+    zone = ZoneSet.from_polygons([rectangle(200, 200, 300, 300)])
+    start = torch.tensor([[100.0, 250.0], [100.0, 100.0]])
+    xs = torch.linspace(140.0, 460.0, 8)
+    crossing = torch.stack([xs, torch.full_like(xs, 250.0)], dim=-1)  # straight through it
+    clear = torch.stack([xs, torch.full_like(xs, 100.0)], dim=-1)  # parallel, above it
+    head = torch.tensor([[[250.0, 250.0]], [[250.0, 250.0]]])  # not executed: left alone
+    sample = torch.cat([head, torch.stack([crossing, clear])], dim=1)  # (2, 9, 2)
+    first_starts, first_ends = path_segments(start, sample[:, 1:])
+    assert zone.crosses(first_starts, first_ends)[0].any()
+    assert not zone.crosses(first_starts, first_ends)[1].any()
+
+    hook = PathRepair(zone, start, first_index=1, margin=1.0)
+    assert torch.equal(hook(sample.clone(), make_step(0)), sample)  # only after the last update
+    out = hook(sample.clone(), make_step(4))
+
+    assert torch.equal(out[:, :1], sample[:, :1])
+    assert torch.equal(out[1], sample[1])  # the clear path is unchanged
+    starts, ends = path_segments(start, out[:, 1:])
+    assert not zone.crosses(starts, ends).any()
+    assert not zone.contains(out[0, 1:]).any()
+    # Waypoints before the crossing stay; the rest stop just short of the entry at x = 200.
+    before = xs < 200
+    assert torch.equal(out[0, 1:][before], crossing[before])
+    torch.testing.assert_close(out[0, 1:][~before][:, 0],
+                               torch.full((int((~before).sum()),), 199.0), atol=1e-3, rtol=0)
+
+

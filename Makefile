@@ -31,6 +31,7 @@ bench: $(STAMP)
 	$(BIN)/benchmark_policy
 	$(BIN)/python scripts/bench_constraints.py --dataset $(DATASET)
 	$(BIN)/python scripts/bench_realtime.py
+	$(BIN)/python scripts/bench_realtime.py --load 1
 
 evaluation: $(STAMP)
 	$(BIN)/evaluate --output docs/evaluation

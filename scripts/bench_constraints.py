@@ -73,7 +73,8 @@ def main() -> None:
     print(f"{'method':<40} {'ms/call':>9} {'ratio':>7} {'violations/chunk':>17}")
     base = {}
     for label, config in rows:
-        ms, violations = measure(ConstrainedPlanner(policy, config, PUSHT_ROBOT), obs, area, args.repeats)
+        planner = ConstrainedPlanner(policy, config, PUSHT_ROBOT)
+        ms, violations = measure(planner, obs, area, args.repeats)
         reference = base.setdefault(config.sampler, ms)
         print(f"{label:<40} {ms:9.1f} {ms / reference:7.2f} {violations:17.3f}")
 

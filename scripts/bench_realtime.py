@@ -17,7 +17,9 @@ the rest of that chunk violates it and the policy must replan at once. Prints; a
 from __future__ import annotations
 
 import argparse
+import os
 import signal
+import subprocess
 import sys
 import tempfile
 import time
@@ -70,6 +72,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="ROS domain (default: a random one, so nothing else is heard)")
     parser.add_argument("--log-dir", default=None,
                         help="where the nodes' logs go (default: a temporary directory)")
+    parser.add_argument("--load", type=int, default=0,
+                        help="busy processes (one core each) run beside the nodes, stopped at "
+                             "the end: measure a busy machine")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch threads of each node process")
     parser.add_argument("--startup-timeout", type=float, default=60.0,
@@ -122,6 +127,7 @@ def run(args: argparse.Namespace) -> int:
     log_dir.mkdir(parents=True, exist_ok=True)
     nominal_ms = 1000.0 / args.rate_hz
     zone_at = args.seconds / 2 if args.zone_at is None else args.zone_at
+    print(f"background load: {args.load} busy process(es) on {os.cpu_count()} cores")
     print(f"realtime benchmark: model {args.model}, configuration {args.configuration}, "
           f"{args.rate_hz:g} Hz, {args.seconds:g} s, ROS domain {domain_id}, logs in {log_dir}")
 
@@ -267,6 +273,9 @@ def main(argv: list[str] | None = None) -> int:
     # stopped either way (SIGINT explicitly too: a shell starts background jobs ignoring it).
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, signal.default_int_handler)
+    # A known background load, started and stopped here: one busy core per process.
+    load = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
+            for _ in range(args.load)]
     try:
         return run(args)
     except KeyboardInterrupt:
@@ -275,6 +284,10 @@ def main(argv: list[str] | None = None) -> int:
     except RuntimeError as error:
         print(f"bench_realtime: {error}", file=sys.stderr)
         return 1
+    finally:
+        for process in load:
+            process.kill()
+            process.wait()
 
 
 if __name__ == "__main__":

@@ -1,5 +1,8 @@
 """Shared fixtures: the real PushT demonstrations, read from a path (never copied), and tiny
-random policies for tests that need a network but not a trained one."""
+random policies for tests that need a network but not a trained one.
+
+Tests are grouped by layer, one folder each, and marked by it (markers in pytest.ini):
+`pytest -m unit` runs the ROS-free suite alone, `-m ros` the DDS tests, `-m install` colcon."""
 
 from __future__ import annotations
 
@@ -15,6 +18,16 @@ if TYPE_CHECKING:
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_ZARR = REPO.parent / "shared" / "datasets" / "pusht_cchi_v7_replay.zarr"
+LAYERS = ("unit", "ros", "install")
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Each test is marked with its layer, the folder it lives in."""
+    for item in items:
+        layer = item.path.parent.name
+        if layer not in LAYERS:
+            raise pytest.UsageError(f"{item.nodeid}: tests live in one of test/{LAYERS}")
+        item.add_marker(getattr(pytest.mark, layer))
 
 
 @pytest.fixture(scope="session")

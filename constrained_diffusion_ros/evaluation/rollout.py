@@ -13,6 +13,7 @@ from constrained_diffusion_ros.planning.executor import ChunkExecutor, ZoneSourc
 from constrained_diffusion_ros.planning.planners import ChunkPlanner
 from sim_bridge import SUCCESS_THRESHOLD, PushTBatch, score_from_coverage
 
+
 @dataclass
 class RolloutLog:
     """Per-step records of a batch of episodes (arrays are (episodes, steps, ...))."""

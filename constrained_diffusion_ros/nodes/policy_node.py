@@ -121,7 +121,7 @@ class PolicyNode(Node):
                              f"{', '.join(self.configurations)}")
         self.config = self.configurations[name]
         self.planner = ConstrainedPlanner(self.policy, self.config, self.robot)
-        self.executor = ChunkExecutor(self.planner, self.zones, self.generator)
+        self.chunk_executor = ChunkExecutor(self.planner, self.zones, self.generator)
 
     def _on_parameters(self, parameters) -> SetParametersResult:
         for parameter in parameters:
@@ -169,15 +169,15 @@ class PolicyNode(Node):
             self.get_logger().warning("observation with NaN/inf ignored")
             return
         if stamp < self.last_stamp or stamp == 0.0:  # the simulator was reset: a new episode
-            self.executor.reset(self.get_parameter("noise_seed").value)
+            self.chunk_executor.reset(self.get_parameter("noise_seed").value)
         self.last_stamp = stamp
         step = step_of_stamp(stamp_msg, self.robot.control_hz)
         started = time.perf_counter()
-        setpoint = self.executor.act(observation[None].astype(np.float32), step)[0]
+        setpoint = self.chunk_executor.act(observation[None].astype(np.float32), step)[0]
         planning_ms = 1000 * (time.perf_counter() - started)
         self._publish_setpoint(setpoint, stamp_msg)
-        if self.executor.last_plan is not None:
-            self._after_plan(self.executor.last_plan.chunks[0])
+        if self.chunk_executor.last_plan is not None:
+            self._after_plan(self.chunk_executor.last_plan.chunks[0])
         self._publish_status(planning_ms)
 
     def _publish_setpoint(self, setpoint: np.ndarray, stamp_msg) -> None:
@@ -196,7 +196,8 @@ class PolicyNode(Node):
 
     def _publish_status(self, planning_ms: float) -> None:
         values = {"configuration": self.config.name, "violations": self.violations,
-                  "plans": self.executor.stats.planner_calls, "planning_ms": f"{planning_ms:.1f}",
+                  "plans": self.chunk_executor.stats.planner_calls,
+                  "planning_ms": f"{planning_ms:.1f}",
                   "replan_latency_ms": f"{self.replan_latency_ms:.1f}",
                   "zones": len(self.zones)}
         status = DiagnosticStatus(level=DiagnosticStatus.OK, name="policy_node",

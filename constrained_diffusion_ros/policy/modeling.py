@@ -7,8 +7,8 @@ from torch import nn
 
 from constrained_diffusion_ros.policy.config import PolicyConfig
 from constrained_diffusion_ros.policy.normalizer import MinMaxNormalizer
-from constrained_diffusion_ros.policy.unet import ConditionalUnet1D
 from constrained_diffusion_ros.policy.schedulers import make_scheduler
+from constrained_diffusion_ros.policy.unet import ConditionalUnet1D
 
 
 class DiffusionPolicy(nn.Module):

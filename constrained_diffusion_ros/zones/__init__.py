@@ -2,7 +2,13 @@
 (`geometry`), different zones per episode of a batch (`episodes`), and the live id-keyed set a
 node updates from messages (`live`)."""
 
-from constrained_diffusion_ros.zones.area import Bounds, Inflated, RestrictedArea, Union
+from constrained_diffusion_ros.zones.area import (
+    Bounds,
+    Inflated,
+    OutsideBox,
+    RestrictedArea,
+    Union,
+)
 from constrained_diffusion_ros.zones.episodes import EpisodeZones
 from constrained_diffusion_ros.zones.geometry import (
     QUAD_SEGS,
@@ -19,6 +25,7 @@ __all__ = [
     "EpisodeZones",
     "Inflated",
     "LiveZones",
+    "OutsideBox",
     "RestrictedArea",
     "Union",
     "ZoneId",

@@ -13,6 +13,7 @@ are immutable), which is the one place derived zone state is kept.
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Hashable, Sequence
 
@@ -23,6 +24,8 @@ Bounds = tuple[float, float, float, float]  # x_min, y_min, x_max, y_max (px)
 
 GRADIENT_STEP = 1e-4  # px: central differences of the signed distance
 PROJECTION_PASSES = 8  # steps along the way out, for areas whose distance is not exact
+RAYS = 64  # directions searched for a clear point where those steps do not find one
+RAY_STEPS = 256
 MARCH_STEPS = 128  # sphere-tracing steps along a segment
 TOUCH = 1e-6  # px: a segment this close to the area has reached it
 
@@ -57,21 +60,57 @@ class RestrictedArea(ABC):
     def project_out(self, points: Tensor, margin: float = 0.0) -> Tensor:
         """(..., 2): points with clearance below `margin` moved out to `margin`; others kept.
 
-        By default up to `PROJECTION_PASSES` steps of (margin - distance) along the way out:
-        one step for a true signed distance, a few where areas meet."""
+        By default a step of (margin - distance) along the way out, exact for a true signed
+        distance. Where one step is not enough (areas meet, and their ways out may face each
+        other, as a zone's and a wall's), the nearer clear point of two: up to
+        `PROJECTION_PASSES` such steps, or the nearest found along `RAYS` directions."""
         if margin < 0:
             raise ValueError(f"margin must be >= 0, got {margin}")
         dtype = _float_dtype(points)
-        p = torch.as_tensor(points).to(torch.float64)
-        eps = 16 * torch.finfo(dtype).eps * (float(p.abs().max(initial=0.0)) + margin + 1.0)
-        for _ in range(PROJECTION_PASSES):
-            gap = margin + eps - self.signed_distance(p).to(torch.float64)
-            todo = gap > eps
-            if not todo.any():
-                break
-            step = gap[..., None] * self.outward_direction(p).to(torch.float64)
-            p = torch.where(todo[..., None], p + step, p)
+        start = torch.as_tensor(points).to(torch.float64)
+        scale = float(start.abs().max()) if start.numel() else 0.0
+        clearance = margin + 16 * torch.finfo(dtype).eps * (scale + margin + 1.0)
+        p = self._step_out(start, clearance)
+        hard = self._distance64(p) < clearance
+        if hard.any():
+            stepped = p[hard]
+            for _ in range(PROJECTION_PASSES - 1):
+                stepped = self._step_out(stepped, clearance)
+            candidates = torch.stack([stepped, self._nearest_clear_on_rays(start[hard],
+                                                                           clearance)])
+            clear = self._distance64(candidates) >= margin
+            cost = torch.where(clear, (candidates - start[hard]).norm(dim=-1), torch.inf)
+            p = p.clone()
+            p[hard] = candidates[cost.argmin(dim=0), torch.arange(len(stepped))]
         return p.to(dtype)
+
+    def _step_out(self, p: Tensor, clearance: float) -> Tensor:
+        gap = clearance - self._distance64(p)
+        step = gap[..., None] * self.outward_direction(p).to(torch.float64)
+        return torch.where((gap > 0)[..., None], p + step, p)
+
+    def _distance64(self, points: Tensor) -> Tensor:
+        return self.signed_distance(points).to(torch.float64)
+
+    def _nearest_clear_on_rays(self, points: Tensor, clearance: float) -> Tensor:
+        """(N, 2) -> the nearest point with the clearance along RAYS directions from each; a
+        point with no clear ray is kept. Steps of (clearance - distance) never pass the first
+        clear point of a ray, since a distance changes by at most the length moved."""
+        angles = torch.arange(RAYS, dtype=torch.float64) * (2 * math.pi / RAYS)
+        rays = torch.stack([angles.cos(), angles.sin()], dim=-1)  # (K, 2)
+        t = torch.zeros(len(points), RAYS, dtype=torch.float64)
+        found = torch.zeros_like(t, dtype=torch.bool)
+        for _ in range(RAY_STEPS):
+            gap = clearance - self._distance64(points[:, None] + t[..., None] * rays)
+            found |= gap <= 0
+            best = torch.where(found, t, torch.inf).amin(dim=1, keepdim=True)
+            active = ~found & (t < best) & (t < 1e6)  # a ray that could still be nearer
+            if not active.any():
+                break
+            t = torch.where(active, t + gap.clamp_min(1e-3), t)
+        nearest = torch.where(found, t, torch.inf).min(dim=1)
+        moved = points + nearest.values[:, None] * rays[nearest.indices]
+        return torch.where(found.any(dim=1)[:, None], moved, points)
 
     def segment_clear_fraction(self, starts: Tensor, ends: Tensor) -> Tensor:
         """(...): fraction t in [0, 1] of each segment travelled before it first enters the
@@ -126,9 +165,7 @@ class RestrictedArea(ABC):
         return Inflated(self, radius)
 
     def _bounded(self, workspace: Bounds) -> RestrictedArea:
-        from constrained_diffusion_ros.zones.geometry import outside_of
-
-        return Union([self, outside_of(workspace)])
+        return Union([self, OutsideBox(workspace)])
 
     def _derived(self, key: Hashable, build: Callable[[], RestrictedArea]) -> RestrictedArea:
         """Derived areas, kept on the instance: areas are immutable, so they never go stale."""
@@ -160,6 +197,22 @@ class Inflated(RestrictedArea):
 
     def _inflated(self, radius: float) -> RestrictedArea:
         return self.area.inflate(self.radius + radius)
+
+
+class OutsideBox(RestrictedArea):
+    """Everything outside an axis-aligned rectangle (the workspace), with its exact distance."""
+
+    def __init__(self, bounds: Bounds) -> None:
+        self.bounds = tuple(map(float, bounds))
+
+    def signed_distance(self, points: Tensor) -> Tensor:
+        p = torch.as_tensor(points)
+        x_min, y_min, x_max, y_max = self.bounds
+        low = torch.tensor([x_min, y_min], dtype=p.dtype)
+        high = torch.tensor([x_max, y_max], dtype=p.dtype)
+        inside_margin = torch.minimum(p - low, high - p).amin(dim=-1)
+        beyond = torch.maximum(low - p, p - high).clamp_min(0.0).norm(dim=-1)
+        return torch.where(inside_margin >= 0, inside_margin, -beyond)
 
 
 class Union(RestrictedArea):

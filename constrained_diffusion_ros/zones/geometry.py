@@ -4,11 +4,11 @@ Inference hooks keep diffusion waypoints out of restricted zones by asking a `Re
 about whole action chunks at once, so every query takes points of shape (..., 2) in workspace px
 and answers for all of them without Python loops.
 
-`ZoneSet` implements it exactly for a union of polygons: shapely validates and merges the polygons once,
-then the edges of the union's boundary rings are stored as tensors (E, 2) (starts, directions,
-normals, ...) that every query broadcasts against. Rings are oriented so the area always lies
-left of each edge (exteriors counter-clockwise, holes clockwise), which gives every edge an
-outward normal and every segment crossing a direction (entering or leaving).
+`ZoneSet` implements it exactly for a union of polygons: shapely validates and merges the
+polygons once, then the edges of the union's boundary rings are stored as tensors (E, 2)
+(starts, directions, normals, ...) that every query broadcasts against. Rings are oriented so
+the area always lies left of each edge (exteriors counter-clockwise, holes clockwise), which
+gives every edge an outward normal and every segment crossing a direction (entering or leaving).
 
 Precision: queries run in `ZoneSet.compute_dtype` (float64 by default) whatever the input dtype,
 and results come back in the input dtype. float32 resolves only ~3e-5 px at 512 px, which makes

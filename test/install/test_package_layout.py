@@ -18,7 +18,7 @@ from unittest import mock
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 PACKAGE = "constrained_diffusion_ros"
 VENV_BIN = Path(sys.executable).parent
 # What the package ships when git cannot say (no checkout): sources, data and build files.
@@ -92,6 +92,15 @@ def test_every_console_script_points_at_a_function_in_the_package() -> None:
         tree = ast.parse(path.read_text())
         defined = {node.name for node in tree.body if isinstance(node, ast.FunctionDef)}
         assert function in defined, f"{name}: {module} defines no function {function}()"
+
+
+def test_the_launcher_starts_the_executables_ros2_run_would() -> None:
+    """The node processes of trials, benchmarks and tests run the console scripts' modules."""
+    from constrained_diffusion_ros.evaluation.launcher import NODES
+
+    scripts = console_scripts(setup_arguments())
+    assert NODES and {name: f"{module}:main" for name, module in NODES.items()} == {
+        name: scripts[name] for name in NODES}
 
 
 # -- Slow: a real colcon build -------------------------------------------------------------------

@@ -12,7 +12,7 @@ import yaml
 from geometry_msgs.msg import PointStamped, PolygonStamped, PoseStamped
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
-from ros_helpers import NodeProcesses, Ros, random_domain_id, stamp_ns
+from ros_helpers import SEED, NodeProcesses, Ros, random_domain_id, stamp_ns
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
@@ -20,7 +20,6 @@ from constrained_diffusion_ros.policy.weights import save_policy
 from msg_schemas import FRAME_ID, SERVICES
 from sim_bridge.scene import seeded_state
 
-SEED = 100000
 CONFIGURATIONS = {
     "fast_project": {"sampler": "ddim", "denoising_steps": 5, "project": True},
     "fast_none": {"sampler": "ddim", "denoising_steps": 5},

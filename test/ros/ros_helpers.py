@@ -21,10 +21,21 @@ from msg_schemas.conversions import stamp_nanoseconds, stamp_of_step, step_of_st
 from sim_bridge import CONTROL_HZ
 
 REPO = Path(__file__).resolve().parents[2]
+SEED = 100000  # the scene the node tests run
 DISCOVERY_S = 20.0  # discovery takes a few seconds here; generous for a loaded machine
 
-__all__ = ["DISCOVERY_S", "REPO", "NodeProcesses", "Ros", "random_domain_id", "stamp_ns",
-           "stamp_step", "step_ns", "step_stamp"]
+__all__ = [
+    "DISCOVERY_S",
+    "REPO",
+    "SEED",
+    "NodeProcesses",
+    "Ros",
+    "random_domain_id",
+    "stamp_ns",
+    "stamp_step",
+    "step_ns",
+    "step_stamp",
+]
 
 
 def stamp_ns(stamp) -> int:

@@ -10,7 +10,7 @@ from pathlib import Path
 from msg_schemas import SERVICES, TOPICS
 from msg_schemas.diagram import mermaid
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_readme_diagram_is_the_generated_one() -> None:

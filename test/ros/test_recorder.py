@@ -7,11 +7,10 @@ import signal
 from pathlib import Path
 
 import yaml
-from conftest import SEED
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PolygonInstanceStamped
 from nav_msgs.msg import Path as PathMsg
-from ros_helpers import stamp_ns
+from ros_helpers import SEED, stamp_ns
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 from visualization_msgs.msg import MarkerArray

@@ -5,9 +5,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from conftest import SEED
 from geometry_msgs.msg import PointStamped
-from ros_helpers import stamp_ns, step_ns
+from ros_helpers import SEED, stamp_ns, step_ns
 from std_srvs.srv import Trigger
 
 from msg_schemas import FRAME_ID, TOPICS, qos_profile

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
@@ -30,3 +31,8 @@ def observations(batch: int, seed: int = 1) -> torch.Tensor:
 def executed(policy: DiffusionPolicy, chunks: torch.Tensor) -> torch.Tensor:
     first = policy.config.first_executed
     return chunks[..., first: first + policy.config.n_action_steps, :]
+
+
+def angle_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """|a - b| for angles, in [0, pi]."""
+    return np.abs((a - b + np.pi) % (2 * np.pi) - np.pi)

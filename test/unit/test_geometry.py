@@ -9,7 +9,7 @@ import pytest
 import shapely
 import torch
 
-from constrained_diffusion_ros.zones import LiveZones, RestrictedArea, ZoneSet, rectangle
+from constrained_diffusion_ros.zones import RestrictedArea, ZoneSet, rectangle
 
 L_SHAPE = np.array([[100, 100], [300, 100], [300, 160], [160, 160], [160, 400], [100, 400]])
 
@@ -187,31 +187,3 @@ def test_empty_set_restricts_nothing() -> None:
     assert torch.isinf(zones.signed_distance(points)).all()
     assert torch.equal(zones.project_out(points, 15.0), points)
     assert (zones.segment_clear_fraction(points, points.flip(0)) == 1).all()
-
-
-def test_live_zones_bookkeeping() -> None:
-    live = LiveZones()
-    square = rectangle(0, 0, 10, 10)
-    live.upsert("a", square, now=0.0)
-    live.upsert(7, rectangle(20, 0, 30, 10), now=0.0, lifetime=5.0)
-    assert live.ids == ["a", 7] and live.version == 2
-    first = live.snapshot()
-    assert first is live.snapshot() and first.area == pytest.approx(200)
-
-    live.upsert("a", rectangle(0, 0, 20, 10), now=1.0)  # replace: now touches zone 7
-    assert live.version == 3 and len(live.snapshot()) == 1 and first.area == pytest.approx(200)
-
-    with pytest.raises(ValueError, match="zone 'a'"):
-        live.upsert("a", [[0, 0], [1, 1], [1, 0], [0, 1]], now=2.0)
-    assert live.version == 3 and live.snapshot().area == pytest.approx(300)
-
-    assert live.expire(now=4.9) == [] and live.expire(now=5.0) == [7]
-    assert live.version == 4 and live.snapshot().area == pytest.approx(200)
-
-    live.upsert("a", [], now=6.0)  # empty polygon removes the id
-    assert live.ids == [] and live.version == 5 and live.snapshot().is_empty
-    assert not live.remove("a") and live.version == 5
-
-    live.upsert("b", square, now=7.0)
-    live.clear()
-    assert len(live) == 0 and live.version == 7

@@ -192,10 +192,9 @@ class MixedPlanner:
 
     def guard(self, zones: RestrictedArea | None, observations: np.ndarray,
               setpoints: np.ndarray, step: int) -> np.ndarray:
-        out = setpoints
+        out = setpoints.copy()
         for planner, rows in self._by_config(np.arange(len(self.owner))):
             if planner.shield is not None:
-                out = out.copy() if out is setpoints else out
                 own = None if zones is None else zones.select_rows(rows)
                 out[rows] = planner.guard(own, observations[rows], setpoints[rows], step)
         return out

@@ -1,9 +1,11 @@
 """Constraint hooks that act on the sample after every denoising update.
 
 The first two are the paper's (Dynamically Constraining Diffusion Policies During Inference);
-the rest go further: a final projection (a hard guarantee for every waypoint) and a repair of the
-straight path between consecutive executed setpoints. All work in workspace pixels, batched over
-episodes and waypoints, and consult only the `RestrictedArea` they are given.
+the rest go further: a final projection (a hard guarantee for every waypoint), a repair of the
+straight path between consecutive executed setpoints, and the committed prefix that lets a
+chunk denoised in the background take over from the one executing without a jump. All work in
+workspace pixels, batched over episodes and waypoints; the constraint hooks consult only the
+`RestrictedArea` they are given.
 """
 
 from __future__ import annotations
@@ -101,6 +103,41 @@ class PathRepair:
             path = path.clone()
             path[rows, cols] = seg_start + keep[:, None] * (seg_end - seg_start)
         return torch.cat([head, path], dim=1)
+
+
+@dataclass
+class CommittedPrefix:
+    """Real-time chunking by inpainting: the first waypoints of the chunk being denoised are
+    the ones that will already have executed (or been committed) when it arrives, so they are
+    held to `known` after every update, noised to the level the sample has reached (one fixed
+    noise draw), and set clean after the last. `weights` (K,) in [0, 1] give 1 to the committed
+    waypoints and less to the ones after, which are only drawn toward `known` (the rest of the
+    chunk in force), so the handover does not jump. Run it after the constraint hooks: the
+    committed waypoints execute whatever they do; the shield has the last word on them."""
+
+    known: Tensor  # (B, K, 2) workspace px, aligned with the chunk's first K waypoints
+    weights: Tensor  # (K,)
+
+    def __post_init__(self) -> None:
+        if self.weights.shape != self.known.shape[1:2]:
+            raise ValueError(f"weights {tuple(self.weights.shape)} must match the "
+                             f"{self.known.shape[1]} known waypoints")
+        self._noise: Tensor | None = None
+
+    def __call__(self, sample: Tensor, step: DenoisingStep) -> Tensor:
+        if self._noise is None:
+            self._noise = torch.randn(self.known.shape, generator=step.generator)
+        held = step.noised(self.known.to(sample), self._noise.to(sample))
+        count, w = self.known.shape[1], self.weights.to(sample)[None, :, None]
+        out = sample.clone()
+        out[:, :count] = w * held + (1.0 - w) * sample[:, :count]
+        return out
+
+
+def prefix_weights(committed: int, soft: int) -> Tensor:
+    """1 for the committed waypoints, then `soft` weights falling linearly toward 0."""
+    falling = torch.arange(soft, 0, -1, dtype=torch.float64) / (soft + 1)
+    return torch.cat([torch.ones(committed, dtype=torch.float64), falling])
 
 
 @dataclass

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import torch
+from diffusers import SchedulerMixin
 
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.normalizer import MinMaxNormalizer
@@ -27,11 +28,23 @@ class DenoisingStep:
     timestep: int
     generator: torch.Generator | None
     normalizer: MinMaxNormalizer  # action normaliser: workspace px <-> [-1, 1]
+    next_timestep: int | None = None  # the noise level the sample is at now; None: clean
+    scheduler: SchedulerMixin | None = None
 
     @property
     def progress(self) -> float:
         """0.0 after the first update, 1.0 after the last."""
         return self.index / max(1, self.total - 1)
+
+    def noised(self, clean: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        """Workspace-pixel actions as a sample at this point of the loop holds them: clean
+        ones noised (with `noise`, in the normalised space) to the level the update reached;
+        unchanged after the last update."""
+        if self.next_timestep is None or self.scheduler is None:
+            return clean
+        level = torch.tensor(self.next_timestep)
+        normal = self.scheduler.add_noise(self.normalizer.normalize(clean), noise, level)
+        return self.normalizer.unnormalize(normal)
 
 
 class SampleHook(Protocol):
@@ -67,7 +80,9 @@ class DenoisingSampler:
             noise = self.policy.unet(sample, timestep, cond)
             sample = self.scheduler.step(noise, timestep, sample, generator=generator).prev_sample
             if hooks:
-                step = DenoisingStep(index, len(timesteps), int(timestep), generator, normalizer)
+                last = index == len(timesteps) - 1
+                step = DenoisingStep(index, len(timesteps), int(timestep), generator, normalizer,
+                                     None if last else int(timesteps[index + 1]), self.scheduler)
                 workspace = normalizer.unnormalize(sample)
                 for hook in hooks:
                     workspace = hook(workspace, step)

@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 from samples import CENTRE, make_step, observations
 
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
-from constrained_diffusion_ros.sampling.hooks import FinalProjection
+from constrained_diffusion_ros.sampling.hooks import (
+    CommittedPrefix,
+    FinalProjection,
+    prefix_weights,
+)
 from constrained_diffusion_ros.sampling.sampler import DenoisingSampler, DenoisingStep
 
 # -- Through the sampler -------------------------------------------------------------------------
@@ -59,3 +64,62 @@ def test_step_progress_runs_evenly_from_0_to_1() -> None:
     np.testing.assert_allclose(progress, [0.0, 0.25, 0.5, 0.75, 1.0])
     assert make_step(0, total=1).progress == 0.0
 
+
+
+# -- The committed prefix (real-time chunking by inpainting) -------------------------------------
+
+KNOWN = torch.tensor([[[100.0, 100.0], [110.0, 104.0], [120.0, 108.0], [130.0, 112.0],
+                       [140.0, 116.0]]]).expand(3, 5, 2).clone()
+
+
+@pytest.mark.parametrize("kind, steps", [("ddim", 5), ("ddpm", None)])
+def test_the_committed_prefix_comes_out_exactly_as_committed(
+        tiny_policy: DiffusionPolicy, kind: str, steps: int | None) -> None:
+    sampler, obs = DenoisingSampler(tiny_policy, kind, steps), observations(3)
+    free = sampler.sample(obs, torch.Generator().manual_seed(0))
+    assert (free[:, :3] - KNOWN[:, :3]).norm(dim=-1).min() > 10  # left alone, it goes elsewhere
+    hook = CommittedPrefix(KNOWN[:, :3], prefix_weights(3, 0))
+    out = sampler.sample(obs, torch.Generator().manual_seed(0), [hook])
+    torch.testing.assert_close(out[:, :3], KNOWN[:, :3], atol=1e-3, rtol=0)
+    assert out.shape == (3, 16, 2)
+
+
+def test_the_prefix_is_held_at_the_noise_level_of_each_update(
+        tiny_policy: DiffusionPolicy) -> None:
+    """Before the last update the prefix is the committed waypoints noised, not clean ones: a
+    clean prefix in a noisy sample is what the network never saw in training."""
+    seen: list[torch.Tensor] = []
+    hook = CommittedPrefix(KNOWN[:, :3], prefix_weights(3, 0))
+
+    def record(sample: torch.Tensor, step: DenoisingStep) -> torch.Tensor:
+        seen.append((sample[:, :3] - KNOWN[:, :3]).norm(dim=-1).mean())
+        return sample
+
+    sampler = DenoisingSampler(tiny_policy, "ddim", 5)
+    sampler.sample(observations(3), torch.Generator().manual_seed(0), [hook, record])
+    assert seen[0] > seen[2] > seen[-1] and seen[-1] < 1e-3  # noise falls to nothing
+
+
+def test_the_prefix_has_the_last_word_and_the_rest_keeps_the_constraints(
+        tiny_policy: DiffusionPolicy) -> None:
+    inside = KNOWN[:, :2] + torch.tensor([200.0, 200.0])  # committed waypoints in CENTRE
+    hooks = [FinalProjection(CENTRE), CommittedPrefix(inside, prefix_weights(2, 0))]
+    out = DenoisingSampler(tiny_policy, "ddim", 5).sample(observations(3),
+                                                          torch.Generator().manual_seed(0), hooks)
+    torch.testing.assert_close(out[:, :2], inside, atol=1e-3, rtol=0)  # they execute anyway
+    assert not CENTRE.contains(out[:, 2:]).any()
+
+
+def test_soft_weights_draw_the_waypoints_after_the_prefix_toward_the_old_chunk(
+        tiny_policy: DiffusionPolicy) -> None:
+    sampler, obs = DenoisingSampler(tiny_policy, "ddim", 5), observations(3)
+    hard = sampler.sample(obs, torch.Generator().manual_seed(0),
+                          [CommittedPrefix(KNOWN[:, :2], prefix_weights(2, 0))])
+    soft = sampler.sample(obs, torch.Generator().manual_seed(0),
+                          [CommittedPrefix(KNOWN, prefix_weights(2, 3))])
+    np.testing.assert_allclose(prefix_weights(2, 3).numpy(), [1, 1, 0.75, 0.5, 0.25])
+    gap_hard = (hard[:, 2:5] - KNOWN[:, 2:5]).norm(dim=-1).mean()
+    gap_soft = (soft[:, 2:5] - KNOWN[:, 2:5]).norm(dim=-1).mean()
+    assert gap_soft < 0.8 * gap_hard
+    with pytest.raises(ValueError, match="weights"):
+        CommittedPrefix(KNOWN, prefix_weights(2, 0))

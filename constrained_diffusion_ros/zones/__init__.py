@@ -3,17 +3,16 @@
 node updates from messages (`live`)."""
 
 from constrained_diffusion_ros.zones.area import (
+    AreaUnion,
     Bounds,
     Inflated,
     OutsideBox,
     RestrictedArea,
-    Union,
 )
 from constrained_diffusion_ros.zones.episodes import EpisodeZones
 from constrained_diffusion_ros.zones.geometry import (
     QUAD_SEGS,
     ZoneSet,
-    outside_of,
     rectangle,
     validate_polygon,
 )
@@ -21,16 +20,15 @@ from constrained_diffusion_ros.zones.live import LiveZones, ZoneId
 
 __all__ = [
     "QUAD_SEGS",
+    "AreaUnion",
     "Bounds",
     "EpisodeZones",
     "Inflated",
     "LiveZones",
     "OutsideBox",
     "RestrictedArea",
-    "Union",
     "ZoneId",
     "ZoneSet",
-    "outside_of",
     "rectangle",
     "validate_polygon",
 ]

@@ -165,7 +165,7 @@ class RestrictedArea(ABC):
         return Inflated(self, radius)
 
     def _bounded(self, workspace: Bounds) -> RestrictedArea:
-        return Union([self, OutsideBox(workspace)])
+        return AreaUnion([self, OutsideBox(workspace)])
 
     def _derived(self, key: Hashable, build: Callable[[], RestrictedArea]) -> RestrictedArea:
         """Derived areas, kept on the instance: areas are immutable, so they never go stale."""
@@ -215,7 +215,7 @@ class OutsideBox(RestrictedArea):
         return torch.where(inside_margin >= 0, inside_margin, -beyond)
 
 
-class Union(RestrictedArea):
+class AreaUnion(RestrictedArea):
     """Several areas as one: inside any, the nearest boundary of the nearest one."""
 
     def __init__(self, parts: Sequence[RestrictedArea]) -> None:
@@ -240,10 +240,10 @@ class Union(RestrictedArea):
         return torch.stack(fractions).amin(dim=0)
 
     def select_rows(self, rows: Tensor) -> RestrictedArea:
-        return Union([part.select_rows(rows) for part in self.parts])
+        return AreaUnion([part.select_rows(rows) for part in self.parts])
 
     def _inflated(self, radius: float) -> RestrictedArea:
-        return Union([part.inflate(radius) for part in self.parts])
+        return AreaUnion([part.inflate(radius) for part in self.parts])
 
 
 def _float_dtype(points: Tensor) -> torch.dtype:

@@ -381,7 +381,3 @@ def _frame(workspace: Bounds) -> shapely.Polygon:
     outer = shapely.box(x_min - width, y_min - height, x_max + width, y_max + height)
     return outer.difference(shapely.box(x_min, y_min, x_max, y_max))
 
-
-def outside_of(workspace: Bounds) -> ZoneSet:
-    """Everything outside the workspace rectangle (to its own size beyond), as a zone."""
-    return ZoneSet([_frame(workspace)])

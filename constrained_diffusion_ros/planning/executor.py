@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from constrained_diffusion_ros.planning.planners import ChunkPlanner
+from constrained_diffusion_ros.planning.realtime import ActionQueue, committed_prefix
 from constrained_diffusion_ros.zones.area import RestrictedArea
 
 
@@ -69,13 +70,32 @@ class ExecutionStats:
     planner_calls: int = 0
 
 
+HANDOVERS = ("sync", "async", "async_prefix")
+
+
 class ChunkExecutor:
     """Plans a chunk per episode and executes `n_action_steps` of its waypoints from
-    `first_executed` on (the reference's convention), for a batch of episodes."""
+    `first_executed` on (the reference's convention), for a batch of episodes.
+
+    With `delay` d > 0 a plan asked for at step t (from t's observation) is ready at t + d, as
+    planning takes time on a real robot; `handover` says what happens meanwhile:
+      - "sync": the robot waits, holding its last setpoint, and the chunk starts when ready;
+      - "async": planning starts `d` steps before the chunk in force runs out, which goes on
+        executing; the new chunk's waypoints for steps already past are skipped;
+      - "async_prefix": as "async", with the committed waypoints inpainted into the new chunk
+        (`CommittedPrefix`, `soft` more drawn toward the old one).
+    d = 0 is the lockstep evaluation (and the node in lockstep), whatever the handover.
+    """
 
     def __init__(self, planner: ChunkPlanner, zones: ZoneSource | None = None,
-                 generator: torch.Generator | None = None) -> None:
+                 generator: torch.Generator | None = None, delay: int = 0,
+                 handover: str = "sync", soft: int = 4) -> None:
+        if handover not in HANDOVERS:
+            raise ValueError(f"handover must be one of {HANDOVERS}, got {handover!r}")
+        if not 0 <= delay <= planner.policy_config.n_action_steps:
+            raise ValueError(f"delay must be in [0, n_action_steps], got {delay}")
         self.planner, self.zones, self.generator = planner, zones, generator
+        self.delay, self.handover, self.soft = delay, handover, soft
         config = planner.policy_config
         self.n_obs_steps, self.first_executed = config.n_obs_steps, config.first_executed
         self.n_action_steps = config.n_action_steps
@@ -91,53 +111,102 @@ class ChunkExecutor:
             self.generator.manual_seed(noise_seed)
 
     def act(self, observations: np.ndarray, step: int) -> np.ndarray:
-        """(B, obs_dim) observations at control step `step` -> (B, 2) setpoints."""
+        """(B, obs_dim) observations at control step `step` -> (B, 2) setpoints. After it,
+        `handed_over` (B,) says which rows executed the first waypoint of a new chunk."""
         area = self.zones.area_at(step) if self.zones is not None else None
         version = self.zones.version_at(step) if self.zones is not None else 0
         if self.history is None:
-            batch = len(observations)
-            self.history = ObservationHistory(observations, self.n_obs_steps)
-            self.chunk = np.zeros((batch, self.n_action_steps, 2))
-            self.next_index = np.full(batch, self.n_action_steps)
-            self.planned_version = np.zeros(batch, dtype=np.int64)
+            self._start(observations)
         else:
             self.history.push(observations)
-        due = self.next_index >= self.n_action_steps
+        self._install_ready(step)
+        lead = 0 if self.handover == "sync" else self.delay
+        due = (self.queue.remaining(step) <= lead) & (self.ready_at < 0)
         if not due.all():
-            due |= self._zones_entered(area, np.broadcast_to(version, due.shape))
+            due |= self._zones_entered(area, np.broadcast_to(version, due.shape), step)
         self.last_plan = None
         if due.any():
             self._replan(np.nonzero(due)[0], area, version, step)
-        action = self.chunk[np.arange(len(self.chunk)), self.next_index]
-        self.next_index += 1
+            self._install_ready(step)
+        waypoint = self.queue.at(step)
+        waiting = np.isnan(waypoint).any(axis=-1)  # hold the last setpoint until a plan is in
+        if waiting.any() and self.held is None:  # nothing sent yet: hold the pusher where it is
+            self.held = self.planner.robot.pusher(self.history.latest).astype(float)
+        action = np.where(waiting[:, None], self.held, waypoint) if waiting.any() else waypoint
+        chunk = np.where(waiting, -1, self.queue_id)
+        self.handed_over = (chunk != self.executed_id) & ~waiting
+        self.executed_id = chunk
         # The guard sees the positions as the planner saw them (float32 observations).
-        return self.planner.guard(area, self.history.latest, action, step)
+        self.held = self.planner.guard(area, self.history.latest, action, step)
+        return self.held
 
-    def _zones_entered(self, area: RestrictedArea | None, version: np.ndarray) -> np.ndarray:
+    def _start(self, observations: np.ndarray) -> None:
+        batch = len(observations)
+        self.history = ObservationHistory(observations, self.n_obs_steps)
+        self.queue = ActionQueue(batch, self.n_action_steps)
+        self.queue_id = np.zeros(batch, dtype=np.int64)  # which plan the queue holds
+        self.executed_id = np.full(batch, -1)
+        self.held: np.ndarray | None = None  # the setpoints executed last
+        self.planned_version = np.zeros(batch, dtype=np.int64)
+        self.ready_at = np.full(batch, -1)  # step at which the pending plan is ready; -1: none
+        self.pending: np.ndarray | None = None  # (B, horizon - first_executed, 2)
+        self.pending_first = np.zeros(batch, dtype=np.int64)
+        self.pending_version = np.zeros(batch, dtype=np.int64)
+        self.plans_made = 0
+
+    def _install_ready(self, step: int) -> None:
+        rows = np.nonzero((self.ready_at >= 0) & (self.ready_at <= step))[0]
+        if len(rows) == 0:
+            return
+        self.queue.install(rows, self.pending[rows], self.pending_first[rows], step)
+        self.queue_id[rows] = self.pending_id[rows]
+        self.planned_version[rows] = self.pending_version[rows]
+        self.ready_at[rows] = -1
+
+    def _zones_entered(self, area: RestrictedArea | None, version: np.ndarray,
+                       step: int) -> np.ndarray:
         """The one replan rule: zones changed since the plan, and the rest of the chunk now
         lies where the planner keeps waypoints out of."""
-        due = np.zeros(len(self.chunk), dtype=bool)
-        rows = np.nonzero((version != self.planned_version)
-                          & (self.next_index < self.n_action_steps))[0]
+        remaining = self.queue.remaining(step)
+        due = np.zeros(len(remaining), dtype=bool)
+        rows = np.nonzero((version != self.planned_version) & (remaining > 0))[0]
         if area is None or len(rows) == 0:
             return due
-        waypoints = torch.from_numpy(self.chunk[rows])
-        inside = self.planner.violates(waypoints, area.select_rows(rows), rows).numpy()
-        remaining = np.arange(self.n_action_steps)[None] >= self.next_index[rows, None]
-        due[rows] = (inside & remaining).any(axis=1)
+        count = self.n_action_steps
+        waypoints = self.queue.upcoming(rows, step, count)
+        inside = self.planner.violates(torch.from_numpy(waypoints), area.select_rows(rows),
+                                       rows).numpy()
+        due[rows] = (inside & (np.arange(count)[None] < remaining[rows, None])).any(axis=1)
         return due
 
     def _replan(self, rows: np.ndarray, area: RestrictedArea | None,
                 version: int | np.ndarray, step: int) -> None:
         zones = None if area is None else area.select_rows(rows)
+        prefix = None
+        if self.handover == "async_prefix" and self.delay > 0:
+            prefix = committed_prefix(self.queue, rows, step, self.delay, self.soft,
+                                      self.first_executed)
         started = time.perf_counter()
-        plan = self.planner.plan(self.history.tensor(rows), zones, rows, self.generator).numpy()
+        observations = self.history.tensor(rows)
+        plan = (self.planner.plan(observations, zones, rows, self.generator)
+                if prefix is None else
+                self.planner.plan(observations, zones, rows, self.generator, prefix)).numpy()
         seconds = time.perf_counter() - started
         self.stats.planning_s += seconds
         self.stats.planned_chunks += len(rows)
         self.stats.planner_calls += 1
         self.last_plan = PlanRecord(step, rows, plan, seconds)
-        first = self.first_executed
-        self.chunk[rows] = plan[:, first: first + self.n_action_steps]
-        self.next_index[rows] = 0
-        self.planned_version[rows] = np.broadcast_to(version, self.next_index.shape)[rows]
+        if self.pending is None:
+            self.pending = np.full((len(self.ready_at), plan.shape[1] - self.first_executed, 2),
+                                   np.nan)
+            self.pending_id = np.zeros(len(self.ready_at), dtype=np.int64)
+        self.plans_made += 1
+        self.pending[rows] = plan[:, self.first_executed:]
+        self.pending_id[rows] = self.plans_made
+        self.pending_version[rows] = np.broadcast_to(version, self.ready_at.shape)[rows]
+        self.ready_at[rows] = step + self.delay
+        if self.handover == "sync":  # the robot waits for the plan, which starts when ready
+            self.pending_first[rows] = step + self.delay
+            self.queue.clear(rows)
+        else:
+            self.pending_first[rows] = step

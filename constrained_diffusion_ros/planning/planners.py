@@ -22,6 +22,7 @@ from constrained_diffusion_ros.planning.shield import PusherShield
 from constrained_diffusion_ros.policy.config import PolicyConfig
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.sampling.hooks import (
+    CommittedPrefix,
     FinalProjection,
     GradientPush,
     OnRows,
@@ -36,12 +37,15 @@ class ChunkPlanner(Protocol):
     """What the chunk executor needs. `zones` answer for the rows asked about (a batch-aware
     area, or one area for all), or are None when no zone is in force."""
 
+    robot: RobotModel  # where the pusher is in an observation, for holding it still
+
     @property
     def policy_config(self) -> PolicyConfig: ...
 
     def plan(self, observations: Tensor, zones: RestrictedArea | None, rows: np.ndarray,
-             generator: torch.Generator | None) -> Tensor:
-        """(R, n_obs_steps, obs_dim) histories of rows `rows` -> (R, horizon, 2) chunks."""
+             generator: torch.Generator | None, prefix: CommittedPrefix | None = None) -> Tensor:
+        """(R, n_obs_steps, obs_dim) histories of rows `rows` -> (R, horizon, 2) chunks; with
+        `prefix`, their first waypoints continue the chunks in force (real-time chunking)."""
         ...
 
     def violates(self, waypoints: Tensor, zones: RestrictedArea | None,
@@ -97,16 +101,18 @@ class ConstrainedPlanner:
         return hooks
 
     def plan(self, observations: Tensor, zones: RestrictedArea | None,
-             rows: np.ndarray | None = None, generator: torch.Generator | None = None
-             ) -> Tensor:
-        """(B, n_obs_steps, obs_dim) -> (B, horizon, 2) workspace setpoints."""
+             rows: np.ndarray | None = None, generator: torch.Generator | None = None,
+             prefix: CommittedPrefix | None = None) -> Tensor:
+        """(B, n_obs_steps, obs_dim) -> (B, horizon, 2) workspace setpoints. The prefix hook
+        runs before the constraint hooks (see `CommittedPrefix`)."""
+        first: list[SampleHook] = [] if prefix is None else [prefix]
         if zones is None or not self.config.constrains:
-            return self.sampler.sample(observations, generator)
+            return self.sampler.sample(observations, generator, first)
         area = self.effective_area(zones)
         if self.config.from_scratch:
             return self._from_scratch(observations, area, generator)
         pusher = self.robot.pusher(observations[:, -1])
-        return self.sampler.sample(observations, generator, self.hooks(area, pusher))
+        return self.sampler.sample(observations, generator, first + self.hooks(area, pusher))
 
     def violates(self, waypoints: Tensor, zones: RestrictedArea | None,
                  rows: np.ndarray | None = None) -> Tensor:
@@ -172,10 +178,11 @@ class MixedPlanner:
                 yield planner, mine
 
     def plan(self, observations: Tensor, zones: RestrictedArea | None, rows: np.ndarray,
-             generator: torch.Generator | None = None) -> Tensor:
+             generator: torch.Generator | None = None,
+             prefix: CommittedPrefix | None = None) -> Tensor:
         if len(self.planners) == 1:
-            return self.planners[0].plan(observations, zones, rows, generator)
-        hooks: list[SampleHook] = []
+            return self.planners[0].plan(observations, zones, rows, generator, prefix)
+        hooks: list[SampleHook] = [] if prefix is None else [prefix]
         for planner, mine in self._by_config(rows) if zones is not None else ():
             area = planner.effective_area(zones.select_rows(mine))
             pusher = self.robot.pusher(observations[mine, -1])

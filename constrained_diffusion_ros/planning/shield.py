@@ -22,6 +22,9 @@ from constrained_diffusion_ros.zones.area import RestrictedArea
 
 # Fractions of the way from the last accepted setpoint to the planned one, tried largest first.
 FRACTIONS = (0.75, 0.5, 0.25, 0.0)  # after the whole way (1.0) was refused
+# Control steps between two observations over which the velocity is still estimated; after a
+# longer gap the pusher has come to rest at its setpoint for all a shield can tell.
+MAX_GAP_STEPS = 10
 
 
 class PusherShield:
@@ -30,40 +33,53 @@ class PusherShield:
 
     def __init__(self, robot: RobotModel, horizon_s: float = 0.6, margin: float = 0.5,
                  escape: float = 20.0) -> None:
-        substeps = max(robot.substeps, round(horizon_s * robot.physics_hz))
-        coefficients = robot.transition(substeps)  # (H, 2, 3)
-        self.path = torch.from_numpy(coefficients[:, 0])  # position after each substep
-        self.control_step = coefficients[robot.substeps - 1]  # (2, 3) one control step
+        horizon = max(robot.substeps, round(horizon_s * robot.physics_hz))
+        coefficients = robot.transition(max(horizon, MAX_GAP_STEPS * robot.substeps))
+        self.path = torch.from_numpy(coefficients[:horizon, 0])  # position after each substep
+        # (2, 3) n control steps, n = 1 .. MAX_GAP_STEPS: entry n - 1
+        self.control_steps = coefficients[robot.substeps - 1::robot.substeps][:MAX_GAP_STEPS]
         self.fractions = torch.tensor(FRACTIONS, dtype=torch.float64)
         self.reach = (self.path[:, 2].abs().max(), self.path[:, 1].abs().max())
         self.margin, self.escape = margin, escape
         self.reset()
 
     def reset(self) -> None:
-        self.last: tuple[int, np.ndarray, np.ndarray] | None = None  # step, position, setpoint
+        # step, position, setpoint sent, velocity estimated at that step
+        self.last: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None
         self.corrected = 0  # setpoints changed since the reset
 
     def estimate(self, position: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray]:
-        """(velocity, setpoint in force) now. The velocity comes from the last two positions
-        and the setpoint between them (the PD law is linear: per axis one equation, one unknown,
-        the earlier velocity). Without the previous step (a new episode: the simulator resets
-        with the pusher at rest) the pusher is taken at rest, holding its position."""
-        if self.last is None or self.last[0] != step - 1 or len(self.last[1]) != len(position):
+        """(velocity, setpoint in force) at the observation of control step `step`.
+
+        The velocity comes from the last two observed positions and the setpoint held between
+        them, over the actual number of control steps between them (the PD law is linear: per
+        axis one equation, one unknown, the earlier velocity). A second call for the same
+        observation (a real-time controller ticking again before the next observation) reuses
+        that estimate and holds the setpoint sent last. Without a usable earlier observation (a
+        new episode: the simulator resets with the pusher at rest) the pusher is taken at rest,
+        holding its position."""
+        if self.last is None or len(self.last[1]) != len(position):
             return np.zeros_like(position), position
-        _, last_position, last_setpoint = self.last
-        (p_p, p_v, p_u), (v_p, v_v, v_u) = self.control_step
+        last_step, last_position, last_setpoint, last_velocity = self.last
+        gap = step - last_step
+        if gap == 0:
+            return last_velocity, last_setpoint
+        if not 0 < gap <= len(self.control_steps):
+            return np.zeros_like(position), position
+        (p_p, p_v, p_u), (v_p, v_v, v_u) = self.control_steps[gap - 1]
         before = (position - p_p * last_position - p_u * last_setpoint) / p_v
         return v_p * last_position + v_v * before + v_u * last_setpoint, last_setpoint
 
     def __call__(self, area: RestrictedArea | None, position: np.ndarray, setpoint: np.ndarray,
                  step: int) -> np.ndarray:
-        """The setpoints to execute at control step `step` (consecutive calls, consecutive
-        steps); with no area they pass unchanged, but the history is kept."""
+        """The setpoints to execute from the observation of control step `step` (steps may
+        repeat or skip, as a real-time clock meets the observations); with no area they pass
+        unchanged, but the history is kept."""
         position, setpoint = np.asarray(position, float), np.asarray(setpoint, float)
-        if area is None:
-            self.last = (step, position, setpoint)
-            return setpoint
         velocity, held = self.estimate(position, step)
+        if area is None:
+            self.last = (step, position, setpoint, velocity)
+            return setpoint
         p, v = torch.from_numpy(position), torch.from_numpy(velocity)
         start, goal = torch.from_numpy(held), torch.from_numpy(setpoint)
         # Only pushers that could reach the area within the horizon need their paths checked:
@@ -77,7 +93,7 @@ class PusherShield:
                                         goal[near])
         result = chosen.numpy()
         self.corrected += int((chosen != goal).any(dim=-1).sum())
-        self.last = (step, position, result)
+        self.last = (step, position, result, velocity)
         return result
 
     def _safe(self, area: RestrictedArea, p: Tensor, v: Tensor, candidates: Tensor) -> Tensor:

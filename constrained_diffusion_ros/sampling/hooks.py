@@ -110,25 +110,28 @@ class CommittedPrefix:
     """Real-time chunking by inpainting: the first waypoints of the chunk being denoised are
     the ones that will already have executed (or been committed) when it arrives, so they are
     held to `known` after every update, noised to the level the sample has reached (one fixed
-    noise draw), and set clean after the last. `weights` (K,) in [0, 1] give 1 to the committed
-    waypoints and less to the ones after, which are only drawn toward `known` (the rest of the
-    chunk in force), so the handover does not jump. Run it after the constraint hooks: the
-    committed waypoints execute whatever they do; the shield has the last word on them."""
+    noise draw), and set clean after the last. `weights` (K,) or per row (B, K), in [0, 1], give
+    1 to the committed waypoints and less to the ones after, which are only drawn toward
+    `known` (the rest of the chunk in force), so the handover does not jump; a row of zeros
+    leaves that row free. Run it before the constraint hooks: a committed waypoint is skipped
+    when the chunk is installed, so the constraints may move it, and they keep the soft ones
+    after it out of the zones."""
 
     known: Tensor  # (B, K, 2) workspace px, aligned with the chunk's first K waypoints
-    weights: Tensor  # (K,)
+    weights: Tensor  # (K,) or (B, K)
 
     def __post_init__(self) -> None:
-        if self.weights.shape != self.known.shape[1:2]:
-            raise ValueError(f"weights {tuple(self.weights.shape)} must match the "
-                             f"{self.known.shape[1]} known waypoints")
+        if self.weights.shape not in (self.known.shape[1:2], self.known.shape[:2]):
+            raise ValueError(f"weights {tuple(self.weights.shape)} must match the known "
+                             f"waypoints {tuple(self.known.shape[:2])}")
         self._noise: Tensor | None = None
 
     def __call__(self, sample: Tensor, step: DenoisingStep) -> Tensor:
         if self._noise is None:
             self._noise = torch.randn(self.known.shape, generator=step.generator)
         held = step.noised(self.known.to(sample), self._noise.to(sample))
-        count, w = self.known.shape[1], self.weights.to(sample)[None, :, None]
+        count, w = self.known.shape[1], self.weights.to(sample)
+        w = (w if w.dim() == 2 else w[None])[..., None]
         out = sample.clone()
         out[:, :count] = w * held + (1.0 - w) * sample[:, :count]
         return out

@@ -36,3 +36,9 @@ def executed(policy: DiffusionPolicy, chunks: torch.Tensor) -> torch.Tensor:
 def angle_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """|a - b| for angles, in [0, pi]."""
     return np.abs((a - b + np.pi) % (2 * np.pi) - np.pi)
+
+
+def chunk_of_rows(rows: int, length: int) -> np.ndarray:
+    """(rows, length, 2): waypoint j of row r is (j, r), so a test reads off which it got."""
+    index = np.arange(length, dtype=float)
+    return np.stack([np.stack([index, np.full(length, float(r))], axis=-1) for r in range(rows)])

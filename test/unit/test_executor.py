@@ -9,6 +9,7 @@ import torch
 
 from constrained_diffusion_ros.planning.executor import ChunkExecutor
 from constrained_diffusion_ros.policy.config import PolicyConfig
+from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones import RestrictedArea, ZoneSet, rectangle
 
 CONFIG = PolicyConfig()  # 2 observations, chunks of 16, 8 executed from index 1
@@ -18,13 +19,14 @@ class Scripted:
     """Waypoint i of the chunk planned at call c for row r is (1000 c + i, r); records calls."""
 
     policy_config = CONFIG
+    robot = PUSHT_ROBOT  # the pusher's position: entries 18, 19 of an observation
 
     def __init__(self, keep_out: RestrictedArea | None = None) -> None:
         self.calls: list[tuple[int, list[int], RestrictedArea | None]] = []
         self.guarded: list[np.ndarray] = []
         self.keep_out, self.resets = keep_out, 0
 
-    def plan(self, observations, zones, rows, generator):
+    def plan(self, observations, zones, rows, generator, prefix=None):
         call = len(self.calls)
         self.calls.append((int(observations[0, -1, 0]), list(rows), zones))
         index = torch.arange(CONFIG.horizon, dtype=torch.float64)

@@ -100,14 +100,27 @@ def test_the_prefix_is_held_at_the_noise_level_of_each_update(
     assert seen[0] > seen[2] > seen[-1] and seen[-1] < 1e-3  # noise falls to nothing
 
 
-def test_the_prefix_has_the_last_word_and_the_rest_keeps_the_constraints(
+def test_the_constraints_run_after_the_prefix_and_keep_every_waypoint_out(
         tiny_policy: DiffusionPolicy) -> None:
-    inside = KNOWN[:, :2] + torch.tensor([200.0, 200.0])  # committed waypoints in CENTRE
-    hooks = [FinalProjection(CENTRE), CommittedPrefix(inside, prefix_weights(2, 0))]
+    """Committed waypoints of the new chunk are skipped when it is installed (their steps have
+    passed), so the constraints may move them; the soft ones after them, drawn toward a chunk
+    a new zone made unsafe, must not stay inside."""
+    inside = KNOWN + torch.tensor([200.0, 200.0])  # the chunk in force runs through CENTRE
+    hooks = [CommittedPrefix(inside, prefix_weights(2, 3)), FinalProjection(CENTRE)]
     out = DenoisingSampler(tiny_policy, "ddim", 5).sample(observations(3),
                                                           torch.Generator().manual_seed(0), hooks)
-    torch.testing.assert_close(out[:, :2], inside, atol=1e-3, rtol=0)  # they execute anyway
-    assert not CENTRE.contains(out[:, 2:]).any()
+    assert not CENTRE.contains(out).any()
+
+
+def test_per_row_weights_leave_rows_without_a_chunk_free(tiny_policy: DiffusionPolicy) -> None:
+    sampler, obs = DenoisingSampler(tiny_policy, "ddim", 5), observations(3)
+    free = sampler.sample(obs, torch.Generator().manual_seed(0))
+    weights = prefix_weights(3, 0)[None].repeat(3, 1)
+    weights[1] = 0.0
+    out = sampler.sample(obs, torch.Generator().manual_seed(0),
+                         [CommittedPrefix(KNOWN[:, :3], weights)])
+    torch.testing.assert_close(out[[0, 2], :3], KNOWN[[0, 2], :3], atol=1e-3, rtol=0)
+    torch.testing.assert_close(out[1], free[1], atol=1e-3, rtol=0)  # px round trip
 
 
 def test_soft_weights_draw_the_waypoints_after_the_prefix_toward_the_old_chunk(

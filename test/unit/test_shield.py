@@ -8,7 +8,7 @@ import torch
 
 from constrained_diffusion_ros.planning.config import ConstraintConfig
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
-from constrained_diffusion_ros.planning.shield import PusherShield
+from constrained_diffusion_ros.planning.shield import MAX_GAP_STEPS, PusherShield
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones import EpisodeZones, ZoneSet, rectangle
@@ -55,9 +55,29 @@ def test_the_velocity_comes_back_from_two_positions_and_the_setpoint() -> None:
 def test_without_history_the_pusher_is_taken_at_rest_holding_its_position() -> None:
     shield, position = PusherShield(PUSHT_ROBOT), np.array([[100.0, 50.0]])
     shield(None, position, np.array([[300.0, 300.0]]), step=4)
-    for step in (0, 7):  # a new episode, or a gap in the steps
+    for step in (0, 4 + MAX_GAP_STEPS + 1):  # a new episode, or too long a gap
         velocity, held = shield.estimate(position, step)
         assert np.all(velocity == 0) and np.array_equal(held, position)
+
+
+@pytest.mark.parametrize("gap", [1, 2, 3])
+def test_the_velocity_is_estimated_over_the_steps_that_actually_passed(gap: int) -> None:
+    """A real-time clock meets the observations as it can: one may be skipped, or seen twice."""
+    robot, shield = PUSHT_ROBOT, PusherShield(PUSHT_ROBOT)
+    position, velocity, setpoint = np.array([[100.0, 50.0]]), np.array([[30.0, -12.0]]), \
+        np.array([[300.0, 200.0]])
+    shield(None, position, setpoint, step=4)
+    (p_p, p_v, p_u), (v_p, v_v, v_u) = robot.transition(gap * robot.substeps)[-1]
+    later = p_p * position + p_v * velocity + p_u * setpoint
+    truth = v_p * position + v_v * velocity + v_u * setpoint
+    shield.last = (4, position, setpoint, np.zeros_like(position))
+    estimated, held = shield.estimate(later, 4 + gap)
+    np.testing.assert_allclose(estimated, truth, rtol=1e-9)
+    np.testing.assert_array_equal(held, setpoint)
+    shield(None, later, setpoint + 5, step=4 + gap)
+    again, held = shield.estimate(later, 4 + gap)  # the same observation, a second tick
+    np.testing.assert_allclose(again, truth, rtol=1e-9)
+    np.testing.assert_array_equal(held, setpoint + 5)
 
 
 def test_setpoints_outside_the_inflated_zone_still_let_the_body_in() -> None:

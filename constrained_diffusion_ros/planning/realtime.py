@@ -1,0 +1,205 @@
+"""Real-time chunking: waypoints indexed by control step, and a planner that works in the
+background while they execute.
+
+A chunk planned from the observation of step t puts its executed waypoint j (chunk index
+`first_executed + j`) at step t + j, whenever it arrives: installed at a later step, the
+waypoints whose time has passed are skipped (as LeRobot's asynchronous action queue merges
+chunks). While a plan is being made, the waypoints that will execute before it arrives are
+already decided; the next chunk is denoised with them held fixed (`committed_prefix`), so the
+handover does not jump. The policy node runs this with a `BackgroundPlanner` thread; the
+latency evaluation runs it in lockstep with a chosen delay.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from constrained_diffusion_ros.sampling.hooks import CommittedPrefix, prefix_weights
+
+
+class ActionQueue:
+    """The chunk in force per episode (B rows), as waypoints indexed by control step.
+
+    A row holds the executed part of its chunk and the rest of the horizon after it, so a plan
+    that arrives late still finds waypoints to execute; it is due for a new one once
+    `n_action_steps` of them have executed after the ones skipped at install (the horizon the
+    policy was trained to execute, whatever the delay).
+    """
+
+    def __init__(self, batch: int, n_action_steps: int) -> None:
+        self.n_action_steps = n_action_steps
+        self.waypoints = np.full((batch, 0, 2), np.nan)
+        self.first_step = np.zeros(batch, dtype=np.int64)
+        self.end = np.zeros(batch, dtype=np.int64)  # index after the last one to execute
+        self.planned = np.zeros(batch, dtype=bool)
+        self.installed = 0  # plans installed since the reset
+        self.skipped = 0  # waypoints skipped at install because their time had passed
+
+    def install(self, rows: np.ndarray, waypoints: np.ndarray, first_step: np.ndarray | int,
+                now: int) -> np.ndarray:
+        """Rows `rows` take `waypoints` (R, N, 2), waypoint j for step `first_step + j`; returns
+        how many of them had already passed at step `now` (skipped)."""
+        rows = np.asarray(rows)
+        if waypoints.shape[1] != self.waypoints.shape[1]:
+            grown = np.full((len(self.first_step), waypoints.shape[1], 2), np.nan)
+            keep = min(waypoints.shape[1], self.waypoints.shape[1])
+            grown[:, :keep] = self.waypoints[:, :keep]
+            self.waypoints = grown
+        self.waypoints[rows] = waypoints
+        self.first_step[rows] = first_step
+        self.planned[rows] = True
+        skipped = np.clip(now - self.first_step[rows], 0, waypoints.shape[1])
+        self.end[rows] = np.minimum(skipped + self.n_action_steps, waypoints.shape[1])
+        self.installed += len(rows)
+        self.skipped += int(skipped.sum())
+        return skipped
+
+    def clear(self, rows: np.ndarray | None = None) -> None:
+        """Forget the chunks of `rows` (all by default): nothing to execute until a plan."""
+        self.planned[slice(None) if rows is None else rows] = False
+
+    def offset(self, step: int) -> np.ndarray:
+        """(B,) index of step `step` in each row's chunk."""
+        return step - self.first_step
+
+    def at(self, step: int) -> np.ndarray:
+        """(B, 2) the waypoints of step `step`; NaN where a row has none (no chunk, or its
+        chunk is used up)."""
+        out = np.full((len(self.first_step), 2), np.nan)
+        index = self.offset(step)
+        ok = self.planned & (index >= 0) & (index < self.waypoints.shape[1])
+        out[ok] = self.waypoints[np.nonzero(ok)[0], index[ok]]
+        return out
+
+    def remaining(self, step: int) -> np.ndarray:
+        """(B,) waypoints still to execute from step `step` on; 0 without a chunk."""
+        left = self.end - self.offset(step)
+        return np.where(self.planned, np.clip(left, 0, self.n_action_steps), 0)
+
+    def upcoming(self, rows: np.ndarray, step: int, count: int) -> np.ndarray:
+        """(R, count, 2) the waypoints of steps step .. step + count - 1; NaN where none."""
+        index = self.offset(step)[rows, None] + np.arange(count)[None]
+        ok = self.planned[rows, None] & (index >= 0) & (index < self.waypoints.shape[1])
+        out = np.full((len(rows), count, 2), np.nan)
+        r, c = np.nonzero(ok)
+        out[r, c] = self.waypoints[np.asarray(rows)[r], index[r, c]]
+        return out
+
+
+def committed_prefix(queue: ActionQueue, rows: np.ndarray, step: int, delay: int, soft: int,
+                     first_executed: int) -> CommittedPrefix | None:
+    """The prefix hook for a chunk planned at step `step` that arrives `delay` steps later.
+
+    Chunk index i lies at step `step - first_executed + i`: indices up to `first_executed +
+    delay` are the waypoints already executed or committed (held exactly); the `soft` after
+    them are drawn toward the chunk in force. Rows with no chunk in force are left free.
+    Returns None when nothing is known (the first plan of an episode).
+    """
+    count = first_executed + delay + soft
+    known = queue.upcoming(rows, step - first_executed, count)
+    weights = np.broadcast_to(prefix_weights(first_executed + delay, soft).numpy(),
+                              known.shape[:2]).copy()
+    missing = np.isnan(known).any(axis=-1)
+    weights[missing] = 0.0
+    if not weights.any():
+        return None
+    known[missing] = 0.0
+    return CommittedPrefix(torch.from_numpy(known), torch.from_numpy(weights))
+
+
+@dataclass
+class PlanJob:
+    """One request to the background planner: everything it needs, copied when asked."""
+
+    generation: int
+    step: int  # the control step of the newest observation in `observations`
+    observations: torch.Tensor  # (1, n_obs_steps, obs_dim)
+    zones: Any  # RestrictedArea | None: the zones in force when asked
+    zone_version: int
+    prefix: CommittedPrefix | None
+
+
+@dataclass
+class PlanResult:
+    job: PlanJob
+    chunk: np.ndarray  # (horizon, 2)
+    seconds: float
+
+
+class BackgroundPlanner:
+    """A worker thread that plans one chunk at a time, off the control thread.
+
+    `submit` replaces any job not yet started (only the newest request matters); a result is
+    offered to `on_result` with its job, whose generation the owner compares with its own to
+    drop plans that a zone or configuration change made stale. The worker draws from its own
+    random generator and runs at a lower CPU priority than the process's other threads, so the
+    control clock is never kept waiting by planning. Owns its thread like tf2_ros's listener:
+    `shutdown()` stops and joins it.
+    """
+
+    def __init__(self, plan: Callable[[PlanJob, torch.Generator], np.ndarray],
+                 on_result: Callable[[PlanResult], None], noise_seed: int = 0,
+                 niceness: int = 5, name: str = "background_planner") -> None:
+        self._plan, self._on_result, self._niceness = plan, on_result, niceness
+        self.generator = torch.Generator().manual_seed(noise_seed)
+        self._job: PlanJob | None = None
+        self._busy = False
+        self._stopping = False
+        self._wake = threading.Condition()
+        self.error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    @property
+    def busy(self) -> bool:
+        """A job is waiting or being planned."""
+        with self._wake:
+            return self._busy or self._job is not None
+
+    def submit(self, job: PlanJob) -> None:
+        with self._wake:
+            self._job = job
+            self._wake.notify()
+
+    def reseed(self, noise_seed: int) -> None:
+        """A new episode: the same noise as a fresh node (applied before the next job)."""
+        with self._wake:
+            self.generator.manual_seed(noise_seed)
+
+    def shutdown(self, timeout: float = 5.0) -> None:
+        with self._wake:
+            self._stopping = True
+            self._wake.notify()
+        self._thread.join(timeout)
+
+    def _run(self) -> None:
+        if self._niceness and hasattr(os, "setpriority"):
+            with contextlib.suppress(OSError):  # Linux: a thread is a process to setpriority
+                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), self._niceness)
+        while True:
+            with self._wake:
+                while self._job is None and not self._stopping:
+                    self._wake.wait()
+                if self._stopping:
+                    return
+                job, self._job, self._busy = self._job, None, True
+            try:
+                began = time.perf_counter()
+                chunk = self._plan(job, self.generator)
+                self._on_result(PlanResult(job, chunk, time.perf_counter() - began))
+            except Exception as error:  # reported by the owner; the worker keeps serving
+                self.error = error
+                logging.getLogger(__name__).exception("planning failed")
+            finally:
+                with self._wake:
+                    self._busy = False

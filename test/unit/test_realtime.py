@@ -1,0 +1,155 @@
+"""Real-time chunking: the step-indexed action queue, the committed prefix it gives the next
+plan, the background planner's thread, and the executor with an inference delay."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+import torch
+from samples import chunk_of_rows
+from test_executor import CONFIG, Scripted
+
+from constrained_diffusion_ros.planning.executor import ChunkExecutor
+from constrained_diffusion_ros.planning.realtime import (
+    ActionQueue,
+    BackgroundPlanner,
+    PlanJob,
+    committed_prefix,
+)
+
+
+def test_a_plan_installed_late_skips_the_waypoints_whose_time_has_passed() -> None:
+    queue = ActionQueue(batch=2, n_action_steps=8)
+    chunk = chunk_of_rows(2, 15)  # waypoint j of row r: (j, r)
+    skipped = queue.install(np.arange(2), chunk, first_step=10, now=13)  # planned at 10, in at 13
+    assert list(skipped) == [3, 3]
+    np.testing.assert_array_equal(queue.at(13), [[3, 0], [3, 1]])  # not 0: those steps passed
+    assert list(queue.remaining(13)) == [8, 8]  # n_action_steps after the skipped ones
+    assert np.isnan(queue.at(9)).all() and np.isnan(queue.at(25)).all()
+    assert queue.skipped == 6
+
+
+def test_the_queue_answers_per_row_and_a_row_without_a_chunk_has_nothing() -> None:
+    queue = ActionQueue(batch=3, n_action_steps=8)
+    queue.install(np.array([2]), chunk_of_rows(1, 15), first_step=4, now=4)
+    waypoints = queue.at(6)
+    assert np.isnan(waypoints[:2]).all() and list(waypoints[2]) == [2, 0]
+    assert list(queue.remaining(6)) == [0, 0, 6]
+    queue.install(np.array([0]), chunk_of_rows(1, 15), first_step=0, now=10)  # very late
+    assert queue.remaining(10)[0] == 5  # only the chunk's own waypoints
+    upcoming = queue.upcoming(np.array([1, 2]), 5, 3)
+    assert np.isnan(upcoming[0]).all()
+    np.testing.assert_array_equal(upcoming[1, :, 0], [1, 2, 3])
+    queue.clear()
+    assert np.isnan(queue.at(6)).all()
+
+
+def test_the_committed_prefix_is_the_chunk_in_force_at_the_steps_before_the_plan_arrives(
+) -> None:
+    """Chunk index i of a plan made at step t lies at step t - first_executed + i."""
+    queue = ActionQueue(batch=2, n_action_steps=8)
+    queue.install(np.array([0]), chunk_of_rows(1, 15), first_step=20, now=20)
+    prefix = committed_prefix(queue, np.array([0, 1]), step=25, delay=2, soft=3,
+                              first_executed=1)
+    # indices 0..5 are steps 24..29: executed waypoints 4..9 of the chunk in force
+    np.testing.assert_array_equal(prefix.known[0, :, 0], [4, 5, 6, 7, 8, 9])
+    np.testing.assert_allclose(prefix.weights[0], [1, 1, 1, 0.75, 0.5, 0.25])
+    assert not prefix.weights[1].any()  # row 1 has no chunk in force: left free
+    assert committed_prefix(queue, np.array([1]), 25, 2, 3, 1) is None
+
+
+def test_the_background_planner_plans_the_newest_job_on_its_own_thread() -> None:
+    release, results, threads = threading.Event(), [], []
+
+    def plan(job: PlanJob, generator: torch.Generator) -> np.ndarray:
+        threads.append(threading.get_ident())
+        release.wait(5)
+        return np.full((16, 2), float(job.generation))
+
+    done = threading.Semaphore(0)
+    worker = BackgroundPlanner(plan, lambda r: (results.append(r), done.release()))
+    try:
+        job = PlanJob(1, 0, torch.zeros(1, 2, 20), None, 0, None)
+        worker.submit(job)
+        while not threads:  # the first job has started
+            threading.Event().wait(0.001)
+        assert worker.busy
+        for generation in (2, 3):  # queued while busy: only the newest is planned
+            worker.submit(PlanJob(generation, 0, job.observations, None, 0, None))
+        release.set()
+        assert done.acquire(timeout=5) and done.acquire(timeout=5)
+        assert [r.job.generation for r in results] == [1, 3]
+        assert threading.get_ident() not in threads
+        assert not done.acquire(timeout=0.2)
+    finally:
+        worker.shutdown()
+    assert not worker._thread.is_alive()
+
+
+def test_a_planning_error_is_kept_and_the_worker_keeps_serving() -> None:
+    calls, done = [], threading.Semaphore(0)
+
+    def plan(job: PlanJob, generator: torch.Generator) -> np.ndarray:
+        calls.append(job.generation)
+        if job.generation == 1:
+            raise RuntimeError("boom")
+        return np.zeros((16, 2))
+
+    worker = BackgroundPlanner(plan, lambda r: done.release())
+    try:
+        worker.submit(PlanJob(1, 0, torch.zeros(1, 2, 20), None, 0, None))
+        while worker.error is None:
+            threading.Event().wait(0.001)
+        worker.submit(PlanJob(2, 0, torch.zeros(1, 2, 20), None, 0, None))
+        assert done.acquire(timeout=5)
+        assert isinstance(worker.error, RuntimeError) and calls == [1, 2]
+    finally:
+        worker.shutdown()
+
+
+def observations_at(step: int, batch: int = 2) -> np.ndarray:
+    return np.full((batch, CONFIG.obs_dim), float(step), dtype=np.float32)
+
+
+def run(executor: ChunkExecutor, steps: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    actions, handovers = [], []
+    for step in range(steps):
+        actions.append(executor.act(observations_at(step), step))
+        handovers.append(executor.handed_over.copy())
+    return actions, handovers
+
+
+def test_async_plans_ahead_and_skips_the_steps_that_passed_while_it_planned() -> None:
+    planner = Scripted()
+    actions, handovers = run(ChunkExecutor(planner, delay=2, handover="async"), 20)
+    # Asked at step 0 (nothing to execute: hold), ready at 2 with waypoints 0, 1 skipped; each
+    # chunk executes n_action_steps waypoints after the skipped ones.
+    assert [call[0] for call in planner.calls] == [0, 8, 16]  # d steps before each chunk ends
+    x = [a[0, 0] - 0.5 for a in actions[2:]]  # the guard adds 0.5
+    assert x[:8] == [3, 4, 5, 6, 7, 8, 9, 10]  # chunk index first_executed + j at step j
+    assert x[8:10] == [1003, 1004]  # chunk 1 planned at 8, installed at 10, 2 skipped
+    assert [bool(h[0]) for h in handovers[:12]] == [False, False, True] + [False] * 7 + [True,
+                                                                                           False]
+
+
+def test_sync_waits_for_the_plan_holding_the_last_setpoint() -> None:
+    planner = Scripted()
+    actions, _ = run(ChunkExecutor(planner, delay=2, handover="sync"), 14)
+    x = [a[0, 0] for a in actions]
+    assert x[0] == 0.5 and x[1] == 0.5 + 0.5  # the pusher held where it was (then guarded)
+    assert [v - 0.5 for v in x[2:10]] == [1, 2, 3, 4, 5, 6, 7, 8]  # the chunk from its start
+    assert x[10] == x[9] + 0.5 and x[11] == x[10] + 0.5  # waiting again (the guard's 0.5)
+    assert x[12] - 0.5 == 1001  # then chunk 1 from its start
+
+
+def test_zero_delay_is_the_lockstep_executor_whatever_the_handover() -> None:
+    runs = []
+    for handover in ("sync", "async", "async_prefix"):
+        actions, _ = run(ChunkExecutor(Scripted(), delay=0, handover=handover), 20)
+        runs.append(np.stack(actions))
+    np.testing.assert_array_equal(runs[0], runs[1])
+    np.testing.assert_array_equal(runs[0], runs[2])
+    with pytest.raises(ValueError, match="handover"):
+        ChunkExecutor(Scripted(), handover="later")

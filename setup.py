@@ -43,6 +43,7 @@ setup(
             f"trial = {PACKAGE}.evaluation.trial:main",
             f"train_policy = {PACKAGE}.training.train:main",
             f"evaluate = {PACKAGE}.evaluation.evaluate:main",
+            f"latency = {PACKAGE}.evaluation.latency:main",
             f"benchmark_policy = {PACKAGE}.evaluation.benchmark:main",
         ],
     },

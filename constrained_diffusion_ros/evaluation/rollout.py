@@ -22,6 +22,7 @@ class RolloutLog:
     commanded: np.ndarray  # (E, T, 2) setpoints sent to the simulator
     states: np.ndarray  # (E, T + 1, 5) before each step and after the last
     coverage: np.ndarray  # (E, T) after each step
+    executed_chunk: np.ndarray | None = None  # (E, T) which plan each step executed; -1: held
     planning_s: float = 0.0  # wall time inside the planner
     planned_chunks: int = 0  # episode-chunks planned (a batched call of R rows counts R)
     planner_calls: int = 0
@@ -49,23 +50,27 @@ class RolloutLog:
 
 def rollout(planner: ChunkPlanner, seeds: Sequence[int], n_steps: int = 200,
             zones: ZoneSource | None = None, generator: torch.Generator | None = None,
-            progress: bool = False, description: str = "rollout") -> RolloutLog:
+            progress: bool = False, description: str = "rollout", delay: int = 0,
+            handover: str = "sync") -> RolloutLog:
     """Runs every seeded scene for `n_steps` control steps, all episodes in one batch, through
-    the same chunk executor as the policy node."""
+    the same chunk executor as the policy node; plans are ready `delay` steps after they are
+    asked for (see `ChunkExecutor`)."""
     sims = PushTBatch(len(seeds))
     states = [sims.reset(list(seeds))]
-    executor = ChunkExecutor(planner, zones, generator)
-    commanded, coverages = [], []
+    executor = ChunkExecutor(planner, zones, generator, delay, handover)
+    commanded, coverages, executed_chunk = [], [], []
     with tqdm(total=n_steps, desc=description, unit="step", disable=not progress,
               leave=False) as bar:
         for step in range(n_steps):
             action = executor.act(sims.observations(), step)
             states.append(sims.step(action))
             commanded.append(action)
+            executed_chunk.append(executor.executed_id.copy())
             coverages.append(sims.coverage())
             bar.update(1)
     stats = executor.stats
     return RolloutLog(list(seeds), commanded=np.stack(commanded, axis=1),
                       states=np.stack(states, axis=1), coverage=np.stack(coverages, axis=1),
+                      executed_chunk=np.stack(executed_chunk, axis=1),
                       planning_s=stats.planning_s, planned_chunks=stats.planned_chunks,
                       planner_calls=stats.planner_calls)

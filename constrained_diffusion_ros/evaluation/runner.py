@@ -129,7 +129,8 @@ def _layout(configs: Sequence[ConstraintConfig], scenario_lists: Sequence[Sequen
 def evaluate_configurations(policy: DiffusionPolicy, configs: Sequence[ConstraintConfig],
                             scenario_lists: Sequence[Sequence[Scenario]],
                             seeds: Sequence[int] = DEFAULT_SEEDS, n_steps: int = 200,
-                            noise_seed: int = 0, progress: bool = True
+                            noise_seed: int = 0, progress: bool = True, delay: int = 0,
+                            handover: str = "sync"
                             ) -> tuple[list[CellResult], RolloutLog, dict[tuple[str, str], int]]:
     """Configurations that share a sampler (one `sampler_key`), each on its scenarios x seeds,
     all as one batch of episodes. Returns the cells, the log and, per (scenario, configuration),
@@ -145,7 +146,8 @@ def evaluate_configurations(policy: DiffusionPolicy, configs: Sequence[Constrain
     started = time.monotonic()
     episode_seeds = [seed for _ in blocks for seed in seeds]
     log = rollout(planner, episode_seeds, n_steps, zones, generator, progress=progress,
-                  description=", ".join(c.name for c in configs))
+                  description=", ".join(c.name for c in configs), delay=delay,
+                  handover=handover)
     timing = {
         "ms_per_chunk": 1000 * log.planning_s / max(1, log.planned_chunks),
         "ms_per_call": 1000 * log.planning_s / max(1, log.planner_calls),

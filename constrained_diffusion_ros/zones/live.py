@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import math
 import threading
-from dataclasses import dataclass
+from collections.abc import Iterable
+from dataclasses import dataclass, field
 
 import shapely
 from numpy.typing import ArrayLike
@@ -20,15 +21,45 @@ class _Zone:
     expires_at: float  # math.inf: never
 
 
+DEFAULT_MAX_ZONES = 64
+DEFAULT_MAX_VERTICES = 256
+
+
+@dataclass
+class BatchOutcome:
+    """What `LiveZones.apply` did with a batch of zone messages."""
+
+    received: int = 0  # messages in the batch
+    applied: int = 0  # ids whose latest message was taken (added, replaced or removed)
+    superseded: int = 0  # messages replaced by a later one for the same id in the batch
+    refused: list[tuple[ZoneId, str]] = field(default_factory=list)  # (id, why)
+    changed: bool = False  # the zones in force changed
+
+
+def coalesce(updates: Iterable[tuple[ZoneId, ArrayLike]]) -> dict[ZoneId, ArrayLike]:
+    """The last vertices per id, in the order the ids last appeared: a batch of messages
+    taken at once reduces to one update per id, and none is lost."""
+    latest: dict[ZoneId, ArrayLike] = {}
+    for zone_id, vertices in updates:
+        latest.pop(zone_id, None)
+        latest[zone_id] = vertices
+    return latest
+
+
 class LiveZones:
     """Zones keyed by id, added, replaced, removed and expired from callbacks on any thread.
 
-    Readers take `snapshot()`, an immutable `ZoneSet` of the union, rebuilt only after a change,
-    so the inference loop can hold one for a whole chunk while callbacks keep updating. `version`
+    Readers take `snapshot()`, an immutable `ZoneSet` of the union, rebuilt lazily after a
+    change, so a flood of messages costs one rebuild per read, not one per message; the
+    inference loop can hold one for a whole chunk while callbacks keep updating. `version`
     increments on every change, letting readers tell cheaply whether their snapshot is stale.
+    At most `max_zones` zones of at most `max_vertices` vertices are in force; more is refused
+    with a reason, the zones in force kept.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, max_zones: int = DEFAULT_MAX_ZONES,
+                 max_vertices: int = DEFAULT_MAX_VERTICES) -> None:
+        self.max_zones, self.max_vertices = max_zones, max_vertices
         self._lock = threading.Lock()
         self._zones: dict[ZoneId, _Zone] = {}
         self._version = 0
@@ -47,13 +78,37 @@ class LiveZones:
             return
         if lifetime is not None and not lifetime >= 0:
             raise ValueError(f"zone {zone_id!r}: lifetime must be >= 0 or None, got {lifetime}")
+        if len(vertices) > self.max_vertices:
+            raise ValueError(f"zone {zone_id!r}: {len(vertices)} vertices, more than the "
+                             f"{self.max_vertices} allowed")
         polygon = validate_polygon(vertices, f"zone {zone_id!r}")
         expires_at = now + lifetime if lifetime else math.inf
         with self._lock:
             previous = self._zones.get(zone_id)
+            if previous is None and len(self._zones) >= self.max_zones:
+                raise ValueError(f"zone {zone_id!r}: {self.max_zones} zones in force already "
+                                 f"(the cap); remove one first")
             self._zones[zone_id] = _Zone(polygon, expires_at)
             if previous is None or not previous.polygon.equals_exact(polygon, 0.0):
                 self._changed()  # a re-published, identical zone only refreshes its lifetime
+
+    def apply(self, updates: Iterable[tuple[ZoneId, ArrayLike]], now: float,
+              lifetime: float | None = None) -> BatchOutcome:
+        """A batch of messages (id, vertices) as they came: coalesced to the last per id, each
+        applied as `upsert` would; a refused one leaves that id as it was."""
+        updates = list(updates)
+        latest = coalesce(updates)
+        outcome = BatchOutcome(received=len(updates), superseded=len(updates) - len(latest))
+        before = self._version
+        for zone_id, vertices in latest.items():
+            try:
+                self.upsert(zone_id, vertices, now, lifetime)
+            except ValueError as error:
+                outcome.refused.append((zone_id, str(error)))
+            else:
+                outcome.applied += 1
+        outcome.changed = self._version != before
+        return outcome
 
     def remove(self, zone_id: ZoneId) -> bool:
         """Drop a zone; returns whether it existed."""

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import pytest
+import torch
 
 from constrained_diffusion_ros.zones import LiveZones, rectangle
+from constrained_diffusion_ros.zones.live import coalesce
 
 
 def test_live_zones_bookkeeping() -> None:
@@ -33,3 +35,35 @@ def test_live_zones_bookkeeping() -> None:
     live.upsert("b", square, now=7.0)
     live.clear()
     assert len(live) == 0 and live.version == 7
+
+
+def test_a_batch_keeps_the_last_message_per_id_and_loses_none() -> None:
+    """A flood taken in one batch: every id ends as its last message said, in one change."""
+    live = LiveZones()
+    messages = []
+    for t in range(1000):  # ids 0..9 updated over and over, id 3 removed at the end
+        zone_id = t % 10
+        messages.append((zone_id, rectangle(t, 0, t + 5, 5)))
+    messages.append((3, []))
+    assert list(coalesce(messages)) == [0, 1, 2, 4, 5, 6, 7, 8, 9, 3]
+    outcome = live.apply(messages, now=0.0)
+    assert outcome.received == 1001 and outcome.superseded == 991 and outcome.refused == []
+    assert outcome.changed and live.version == 9  # 9 added; 3 never existed, so not removed
+    snapshot = live.snapshot()
+    for zone_id in live.ids:
+        last = 990 + zone_id
+        assert snapshot.contains(torch.tensor([[last + 2.5, 2.5]])).item()
+    assert sorted(live.ids) == [0, 1, 2, 4, 5, 6, 7, 8, 9]
+
+
+def test_caps_refuse_with_a_reason_and_keep_the_zones_in_force() -> None:
+    live = LiveZones(max_zones=2, max_vertices=5)
+    live.apply([(1, rectangle(0, 0, 1, 1)), (2, rectangle(2, 0, 3, 1))], now=0.0)
+    hexagon = [[0, 0], [1, 0], [1, 1], [0.5, 1.5], [0, 1], [-0.5, 0.5]]
+    outcome = live.apply([(3, rectangle(4, 0, 5, 1)), (1, hexagon),
+                          (2, [[0, 0], [float("nan"), 0], [1, 1]])], now=0.0)
+    reasons = dict(outcome.refused)
+    assert "cap" in reasons[3] and "6 vertices" in reasons[1] and "finite" in reasons[2]
+    assert outcome.applied == 0 and not outcome.changed and live.ids == [1, 2]
+    outcome = live.apply([(1, []), (3, rectangle(4, 0, 5, 1))], now=0.0)  # room made first
+    assert outcome.refused == [] and live.ids == [2, 3]

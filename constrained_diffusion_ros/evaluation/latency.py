@@ -1,0 +1,137 @@
+"""What planning latency costs, measured deterministically: `latency --help`.
+
+The batched evaluation with an inference delay of d control steps (the chunk asked for at step
+t, from t's observation, is ready at t + d) and three handovers (`ChunkExecutor`): sync (the
+robot waits for the plan, as the policy node did when it planned in its callback), async (the
+chunk in force goes on; the new one skips the steps that passed) and async_prefix (async with
+the committed waypoints inpainted into the new chunk). Reports s, r, r_body and the jump at
+chunk handovers (the distance between consecutive setpoints where a new chunk takes over,
+against the same within a chunk) and writes docs/latency.md and latency.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from constrained_diffusion_ros.evaluation.runner import (
+    DEFAULT_SEEDS,
+    cell_metrics,
+    evaluate_configurations,
+)
+from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
+from constrained_diffusion_ros.paths import config_dir, default_model_dir
+from constrained_diffusion_ros.planning.config import load_configurations
+from constrained_diffusion_ros.planning.executor import HANDOVERS
+from constrained_diffusion_ros.policy.weights import load_policy
+
+
+def handover_jumps(commanded: np.ndarray, executed_chunk: np.ndarray) -> tuple[float, float]:
+    """Mean distance between consecutive setpoints (E, T, 2) where a new chunk takes over from
+    another or from a held setpoint (the first chunk of an episode excluded), and within one."""
+    step = np.linalg.norm(np.diff(commanded, axis=1), axis=-1)  # (E, T - 1)
+    before, after = executed_chunk[:, :-1], executed_chunk[:, 1:]
+    first = np.where(executed_chunk >= 0, executed_chunk, np.iinfo(np.int64).max).min(axis=1)
+    handover = (after != before) & (after >= 0) & (after != first[:, None])
+    within = (after == before) & (after >= 0)
+    return float(step[handover].mean()), float(step[within].mean())
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="latency", description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--model", default=str(default_model_dir()), help="policy directory")
+    parser.add_argument("--configs", nargs="+", default=["ddim10_r_g10_p_safe", "r_g10_p_safe"],
+                        help="configuration names from config/configurations.yaml")
+    parser.add_argument("--scenarios", nargs="+", default=["center_0.2", "left_0.1"],
+                        help="scenario names from config/scenarios.yaml")
+    parser.add_argument("--delays", nargs="+", type=int, default=[0, 1, 2, 4],
+                        help="inference delays, control steps")
+    parser.add_argument("--episodes", type=int, default=len(DEFAULT_SEEDS),
+                        help="seeds from 100000 on")
+    parser.add_argument("--steps", type=int, default=200, help="action steps per episode")
+    parser.add_argument("--output", default="docs", help="where latency.md and .json go")
+    parser.add_argument("--threads", type=int, default=2, help="torch threads")
+    return parser
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.episodes < 1 or args.steps < 1 or min(args.delays) < 0:
+        raise ValueError("--episodes and --steps must be positive, --delays >= 0")
+    directory = config_dir()
+    known_scenarios = load_scenarios(directory / "scenarios.yaml")
+    known_configs = load_configurations(directory / "configurations.yaml")
+    unknown = [n for n in args.scenarios if n not in known_scenarios] + \
+        [n for n in args.configs if n not in known_configs]
+    if unknown:
+        raise ValueError(f"unknown scenarios or configurations: {unknown}")
+    scenarios = [known_scenarios[n] for n in args.scenarios]
+    policy = load_policy(args.model)
+    seeds = list(range(100000, 100000 + args.episodes))
+    runs = [(c, d, h) for c in args.configs for d in args.delays
+            for h in (HANDOVERS if d > 0 else HANDOVERS[:1])]
+    rows = []
+    for name, delay, handover in tqdm(runs, desc="latency", unit="run"):
+        _, log, first_rows = evaluate_configurations(
+            policy, [known_configs[name]], [scenarios], seeds, args.steps, progress=False,
+            delay=delay, handover=handover)
+        for scenario in scenarios:
+            start = first_rows[(scenario.name, name)]
+            block = np.arange(start, start + len(seeds))
+            metrics = cell_metrics(log, block, scenario)
+            jump, within = handover_jumps(log.commanded[block], log.executed_chunk[block])
+            rows.append({"configuration": name, "scenario": scenario.name, "delay": delay,
+                         "handover": handover if delay else "none", "s": metrics["s"],
+                         "r": metrics["r"], "r_body": metrics["r_body"],
+                         "jump_at_handover_px": jump, "step_within_chunk_px": within,
+                         "episodes": len(seeds)})
+    output = Path(args.output)
+    output.mkdir(parents=True, exist_ok=True)
+    (output / "latency.json").write_text(json.dumps(rows, indent=1) + "\n")
+    table = markdown(rows, args)
+    (output / "latency.md").write_text(table)
+    print(table)
+    return 0
+
+
+def markdown(rows: list[dict], args: argparse.Namespace) -> str:
+    lines = [
+        "# What planning latency costs",
+        "",
+        f"Written by `latency` ({args.episodes} seeded episodes per row, {args.steps} steps). "
+        "A chunk asked for at step t is ready at t + d. sync: the robot holds its setpoint "
+        "until the plan is in. async: the chunk in force goes on and the new one skips the "
+        "steps that passed. async_prefix: async with the committed waypoints inpainted into "
+        "the new chunk (4 soft ones after them). Jump: mean distance between consecutive "
+        "setpoints where a new chunk takes over; step: the same within a chunk (px). r counts "
+        "setpoints inside a zone, r_body steps with the pusher's disc overlapping one.",
+        "",
+        "| configuration | scenario | d | handover | s | r | r_body | jump px | step px |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(f"| {r['configuration']} | {r['scenario']} | {r['delay']} | "
+                     f"{r['handover']} | {r['s']:.3f} | {r['r']:.2f} | {r['r_body']:.2f} | "
+                     f"{r['jump_at_handover_px']:.1f} | {r['step_within_chunk_px']:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    torch.set_num_threads(max(1, args.threads))
+    try:
+        return run(args)
+    except (ValueError, OSError) as error:
+        print(f"latency: error: {error}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

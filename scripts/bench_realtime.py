@@ -1,17 +1,23 @@
-"""Benchmark the policy in a realtime loop: setpoint timing, and replanning after a zone change.
+"""Benchmark the live action filter: repeated realtime trials with zones dropped in the
+pusher's path, a zone flood, and the README's trial, on an idle and on a loaded machine.
 
-Starts sim_node (realtime, stepping on its own timer) and policy_node as processes in a random
-ROS domain, listens for a while, and reports:
-  - the setpoint period (arrival to arrival) median and the 99th percentile of its jitter,
-    |period - 1 / rate|, beside the same for the sim's observations, and the policy's response
-    time (observation arrival -> setpoint arrival, same stamp);
-  - after a zone published mid-run by this script: when the policy showed it (zone markers),
-    the policy's own `replan_latency_ms` (zone arrival -> new plan), and the time from
-    publishing the zone to the first setpoint that is not a waypoint of the plan in force.
-By default the zone is a square around the tail of the plan in force when it is published, so
-the rest of that chunk violates it and the policy must replan at once. Prints; asserts nothing.
+Starts sim_node and policy_node (both `mode:=realtime`) as processes in a random ROS domain, and
+drives them from an rclpy client of its own (not zone_publisher). Per configuration and
+condition it runs `--trials` trials, each on its own scene: reset, let the policy run, drop a
+square zone on the waypoints the plan in force is about to execute (placed so the pusher's disc
+is still outside it), watch, clear. It prints per condition:
+  - the setpoint period (arrival to arrival, windows without zone events) median, and its
+    jitter |period - 1/rate| p99;
+  - the time from publishing a zone to the first moment the setpoint in force respects it
+    (outside the zone grown by the pusher radius), over all trials and over the trials where
+    the setpoint held when the zone came did not (the node had to react);
+  - setpoints inside a zone after that moment, and steps where the pusher's disc overlaps a
+    zone it did not start in;
+then a 1 kHz zone flood (zones in force = last message per id how soon after it ends; the period
+p99 against the same run without a flood), and `trial` under load. "loaded" means one busy
+process per `--load` core, started and stopped by this script. Prints; asserts nothing.
 
-  scripts/bench_realtime.py --seconds 20 --configuration ddim10_r_g10_p_safe
+  scripts/bench_realtime.py --trials 20
 """
 
 from __future__ import annotations
@@ -23,9 +29,11 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import shapely
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -34,260 +42,367 @@ from constrained_diffusion_ros.evaluation.launcher import (  # noqa: E402
     NodeProcesses,
     random_domain_id,
 )
-from constrained_diffusion_ros.paths import config_dir, default_model_dir  # noqa: E402
+from constrained_diffusion_ros.paths import default_model_dir  # noqa: E402
 from msg_schemas import SERVICES, TOPICS, qos_profile  # noqa: E402
 from msg_schemas.conversions import (  # noqa: E402
     path_of,
     point_of,
     step_of_stamp,
     zone_message,
-    zones_shown,
 )
-from sim_bridge import CONTROL_HZ  # noqa: E402
+from sim_bridge import AGENT_RADIUS, CONTROL_HZ  # noqa: E402
 
-ZONE_ID = 900  # far from the ids scenarios use
-MAX_POINT_GAP = 1e-3  # px: a setpoint this close to a waypoint of the old plan comes from it
+FIRST_SEED = 100000
+FLOOD_IDS = 40  # ids cycled by the flood (the node's cap is 64)
+TOLERANCE = 0.5  # px: a setpoint this close to the grown zone's boundary respects it
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--model", default=str(default_model_dir()), help="policy directory")
-    parser.add_argument("--configuration", default="ddim10_r_g10_p_safe",
-                        help="constraint configuration name")
-    parser.add_argument("--configurations-file",
-                        default=str(config_dir() / "configurations.yaml"),
-                        help="YAML of constraint configurations")
-    parser.add_argument("--seconds", type=float, default=20.0,
-                        help="how long to observe setpoints")
-    parser.add_argument("--rate-hz", type=float, default=10.0, help="sim control rate")
-    parser.add_argument("--seed", type=int, default=100000, help="PushT scene seed")
-    parser.add_argument("--zone-at", type=float, default=None,
-                        help="seconds into the run to publish the zone (default: half way)")
-    parser.add_argument("--zone", default="auto",
-                        help="'x1,y1;x2,y2;...' in px, or 'auto': a square around the tail of "
-                             "the plan in force")
-    parser.add_argument("--zone-size", type=float, default=80.0, help="side of the auto zone, px")
-    parser.add_argument("--domain-id", type=int, default=None,
-                        help="ROS domain (default: a random one, so nothing else is heard)")
-    parser.add_argument("--log-dir", default=None,
-                        help="where the nodes' logs go (default: a temporary directory)")
-    parser.add_argument("--load", type=int, default=0,
-                        help="busy processes (one core each) run beside the nodes, stopped at "
-                             "the end: measure a busy machine")
-    parser.add_argument("--threads", type=int, default=1,
-                        help="torch threads of each node process")
-    parser.add_argument("--startup-timeout", type=float, default=60.0,
-                        help="seconds to wait for the nodes to start and discover each other")
+    parser.add_argument("--configurations", nargs="+",
+                        default=["ddim10_r_g10_p_safe", "r_g10_p_safe"],
+                        help="constraint configurations to run (r_g10_p_safe: DDPM, 100 steps)")
+    parser.add_argument("--trials", type=int, default=20, help="trials per condition")
+    parser.add_argument("--conditions", nargs="+", default=["idle", "loaded"],
+                        choices=["idle", "loaded"], help="machine conditions to run")
+    parser.add_argument("--load", type=int, default=1,
+                        help="busy processes (one core each) in the loaded condition")
+    parser.add_argument("--rate-hz", type=float, default=10.0, help="control rate")
+    parser.add_argument("--warmup", type=float, default=2.0,
+                        help="seconds of a trial before its zone is dropped")
+    parser.add_argument("--watch", type=float, default=3.0,
+                        help="seconds of a trial after its zone is dropped")
+    parser.add_argument("--zone-size", type=float, default=40.0, help="side of the zone, px")
+    parser.add_argument("--flood-hz", type=float, default=1000.0, help="0: no flood")
+    parser.add_argument("--flood-seconds", type=float, default=10.0)
+    parser.add_argument("--no-trial", action="store_true",
+                        help="skip running `trial` in the loaded condition")
+    parser.add_argument("--log-dir", default=None, help="node logs (default: a temporary one)")
+    parser.add_argument("--startup-timeout", type=float, default=90.0)
     return parser
 
 
-def parse_zone(text: str) -> np.ndarray:
-    return np.array([[float(c) for c in pair.split(",")] for pair in text.split(";")
-                     if pair.strip()])
+@dataclass
+class Condition:
+    """Everything measured in one condition (one configuration, idle or loaded)."""
+
+    periods: list[float] = field(default_factory=list)  # s
+    latencies: list[float] = field(default_factory=list)  # s, every trial
+    reacted: list[float] = field(default_factory=list)  # s, trials whose held setpoint was unsafe
+    inside_after: int = 0
+    overlap_steps: int = 0
+    trials: int = 0
+    skipped: int = 0  # no place for a zone the disc was outside of
 
 
-def auto_zone(plan: np.ndarray, side: float) -> np.ndarray:
-    """A square around the last quarter of a plan's waypoints, inside the workspace."""
-    centre = np.clip(plan[-len(plan) // 4:].mean(axis=0), side / 2, 512 - side / 2)
+class Client:
+    """The benchmark's own rclpy node: observes the topics, drops zones, resets the sim."""
+
+    def __init__(self, domain_id: int, children: NodeProcesses) -> None:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticStatus
+        from geometry_msgs.msg import PointStamped, PolygonInstanceStamped
+        from nav_msgs.msg import Path as PathMsg
+        from rcl_interfaces.srv import SetParameters
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from std_srvs.srv import Trigger
+        from visualization_msgs.msg import MarkerArray
+
+        self.children = children
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain_id)
+        self.node = rclpy.create_node("bench_realtime", context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.setpoints: list[tuple[float, np.ndarray]] = []
+        self.pushers: list[tuple[float, int, np.ndarray]] = []
+        self.plan: np.ndarray | None = None
+        self.plan_time = 0.0
+        self.markers: tuple[float, shapely.Geometry] | None = None
+        self.status: dict[str, str] = {}
+
+        def subscribe(key: str, msg_type, callback) -> None:
+            self.node.create_subscription(msg_type, TOPICS[key].name, callback,
+                                          qos_profile(TOPICS[key]))
+
+        subscribe("setpoint", PointStamped,
+                  lambda m: self.setpoints.append((time.monotonic(), point_of(m))))
+        subscribe("pusher", PointStamped, lambda m: self.pushers.append(
+            (time.monotonic(), step_of_stamp(m.header.stamp, CONTROL_HZ), point_of(m))))
+        subscribe("plan", PathMsg, self._on_plan)
+        subscribe("zone_markers", MarkerArray, self._on_markers)
+        subscribe("policy_status", DiagnosticStatus,
+                  lambda m: self.status.update({kv.key: kv.value for kv in m.values}))
+        self.zones = self.node.create_publisher(PolygonInstanceStamped, TOPICS["zones"].name,
+                                                qos_profile(TOPICS["zones"], "publisher"))
+        self.reset = self.node.create_client(Trigger, SERVICES["reset"].name)
+        self.clear = self.node.create_client(Trigger, SERVICES["clear_zones"].name)
+        self.sim_parameters = self.node.create_client(SetParameters,
+                                                      "/sim_node/set_parameters")
+        self.Trigger, self.SetParameters = Trigger, SetParameters
+
+    def discovered(self) -> bool:
+        node = self.node
+        return (self.reset.service_is_ready() and self.sim_parameters.service_is_ready()
+                and all(s.get_publisher_count() >= 1 for s in node.subscriptions)
+                and self.zones.get_subscription_count() >= 1
+                and node.count_subscribers(TOPICS["pusher"].name) >= 2)
+
+    def _on_plan(self, msg) -> None:
+        self.plan, self.plan_time = path_of(msg), time.monotonic()
+
+    def _on_markers(self, msg) -> None:
+        polygons = [shapely.Polygon([(p.x, p.y) for p in m.points[:-1]])
+                    for m in msg.markers if m.action == m.ADD]
+        self.markers = (time.monotonic(), shapely.union_all(polygons))
+
+    def spin_until(self, condition, timeout: float, what: str) -> None:
+        deadline = time.monotonic() + timeout
+        while not condition():
+            failure = self.children.failed()
+            if failure:
+                raise RuntimeError(failure)
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"timed out waiting for {what}")
+            self.executor.spin_once(timeout_sec=0.005)
+
+    def spin_for(self, seconds: float) -> None:
+        deadline = time.monotonic() + seconds
+        self.spin_until(lambda: time.monotonic() >= deadline, seconds + 1, "time")
+
+    def call(self, client, request, what: str):
+        self.spin_until(client.service_is_ready, 30.0, f"the {what} service")
+        future = client.call_async(request)
+        self.spin_until(future.done, 30.0, what)
+        return future.result()
+
+    def reset_to(self, seed: int) -> None:
+        from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+
+        value = ParameterValue(type=ParameterType.PARAMETER_INTEGER, integer_value=seed)
+        self.call(self.sim_parameters,
+                  self.SetParameters.Request(parameters=[Parameter(name="seed", value=value)]),
+                  "sim seed")
+        self.call(self.reset, self.Trigger.Request(), "sim reset")
+
+    def publish_zone(self, zone_id: int, vertices) -> None:
+        self.zones.publish(zone_message(zone_id, vertices, self.node.get_clock().now().to_msg()))
+
+    def close(self) -> None:
+        import rclpy
+
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
+def square(centre: np.ndarray, side: float) -> np.ndarray:
     half = side / 2
     return centre + np.array([[-half, -half], [half, -half], [half, half], [-half, half]])
 
 
-def stats_ms(values: np.ndarray) -> str:
-    if len(values) == 0:
-        return "n/a"
-    return (f"median {np.median(values):.1f} ms, p99 {np.percentile(values, 99):.1f} ms, "
-            f"max {np.max(values):.1f} ms")
+def zone_in_path(plan: np.ndarray, held: np.ndarray, pusher: np.ndarray, speed: float,
+                 side: float) -> np.ndarray | None:
+    """A square on the waypoints about to execute, as close to the held setpoint as can be
+    with the pusher still able to stop outside it: its disc clear by 2 px plus what it covers
+    in one more control step at its speed (the simulator's step in progress) plus what it
+    overshoots braking from that speed under its PD law (3 px per 100 px/s). An overlap
+    after that is the filter's fault."""
+    clearance = AGENT_RADIUS + 2 + speed / CONTROL_HZ + 0.03 * speed
+    ahead = np.argmin(np.linalg.norm(plan - held, axis=1))
+    for index in range(ahead, len(plan)):
+        centre = np.clip(plan[index], side / 2 + 2, 510 - side / 2)
+        shape = shapely.Polygon(square(centre, side))
+        if shape.distance(shapely.Point(*pusher)) > clearance:
+            return square(centre, side)
+    return None
 
 
-def period_report(label: str, arrivals: list[float], nominal_ms: float) -> None:
-    periods = 1000 * np.diff(np.asarray(arrivals))
-    if len(periods) == 0:
-        print(f"{label}: fewer than two arrivals")
+def respects(shape: shapely.Polygon, point: np.ndarray) -> bool:
+    return shape.distance(shapely.Point(*point)) >= AGENT_RADIUS - TOLERANCE and \
+        not shape.contains(shapely.Point(*point))
+
+
+def periods_between(arrivals: list[float], start: float, stop: float) -> list[float]:
+    times = [t for t in arrivals if start <= t <= stop]
+    return list(np.diff(times))
+
+
+def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
+              result: Condition) -> None:
+    client.reset_to(seed)
+    begin = time.monotonic()
+    client.spin_until(lambda: client.plan is not None and client.plan_time > begin
+                      and client.setpoints and client.setpoints[-1][0] > begin,
+                      60.0, "a plan after the reset")
+    client.spin_for(args.warmup)
+    held = client.setpoints[-1][1]
+    (_, step_before, before), (_, step, pusher) = client.pushers[-2:]
+    speed = np.linalg.norm(pusher - before) * CONTROL_HZ / max(1, step - step_before)
+    vertices = zone_in_path(client.plan, held, pusher, speed, args.zone_size)
+    if vertices is None:
+        result.skipped += 1
         return
-    jitter = np.abs(periods - nominal_ms)
-    print(f"{label} period: median {np.median(periods):.1f} ms over {len(periods)} periods; "
-          f"jitter |period - {nominal_ms:.0f} ms|: median {np.median(jitter):.1f} ms, "
-          f"p99 {np.percentile(jitter, 99):.1f} ms, max {np.max(jitter):.1f} ms")
+    shape = shapely.Polygon(vertices)
+    n_setpoints, n_pushers = len(client.setpoints), len(client.pushers)
+    published = time.monotonic()
+    client.publish_zone(1000 + index, vertices)
+    client.spin_for(args.watch)
+    after = client.setpoints[n_setpoints:]
+    held_ok = respects(shape, held)
+    first = published if held_ok else next((t for t, p in after if respects(shape, p)), None)
+    result.trials += 1
+    if first is None:
+        result.latencies.append(float("inf"))
+        if not held_ok:
+            result.reacted.append(float("inf"))
+    else:
+        result.latencies.append(first - published)
+        if not held_ok:
+            result.reacted.append(first - published)
+    result.inside_after += sum(not respects(shape, p) for t, p in after
+                               if first is not None and t > first)
+    result.overlap_steps += sum(shape.distance(shapely.Point(*p)) < AGENT_RADIUS
+                                for _, _, p in client.pushers[n_pushers:])
+    arrivals = [t for t, _ in client.setpoints]
+    result.periods += periods_between(arrivals, begin + 0.5, published)
+    result.periods += periods_between(arrivals, published + 0.3, time.monotonic())
+    client.call(client.clear, client.Trigger.Request(), "clear zones")
 
 
-def run(args: argparse.Namespace) -> int:
-    import rclpy
-    from diagnostic_msgs.msg import DiagnosticStatus
-    from geometry_msgs.msg import PointStamped, PolygonInstanceStamped
-    from nav_msgs.msg import Path as PathMsg
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
-    from std_srvs.srv import Trigger
-    from visualization_msgs.msg import MarkerArray
+def flood(client: Client, args: argparse.Namespace) -> None:
+    """`--flood-hz` zone messages for `--flood-seconds`, small squares along the bottom edge,
+    ids cycling; then how long until the policy shows exactly the last message per id."""
+    rng = np.random.default_rng(0)
+    client.reset_to(FIRST_SEED)
+    client.spin_for(2.0)
+    start = time.monotonic()
+    client.spin_for(args.flood_seconds)
+    quiet = periods_between([t for t, _ in client.setpoints], start, time.monotonic())
+    last: dict[int, np.ndarray] = {}
+    sent, flood_start = 0, time.monotonic()
+    period = 1.0 / args.flood_hz
+    while time.monotonic() - flood_start < args.flood_seconds:
+        due = int((time.monotonic() - flood_start) / period) + 1
+        while sent < due:
+            zone_id = 2000 + sent % FLOOD_IDS
+            x = rng.uniform(20, 480)
+            last[zone_id] = np.array([[x, 496], [x + 12, 496], [x + 12, 508], [x, 508]])
+            client.publish_zone(zone_id, last[zone_id])
+            sent += 1
+        client.executor.spin_once(timeout_sec=0)
+    ended = time.monotonic()
+    flooded = periods_between([t for t, _ in client.setpoints], flood_start, ended)
+    expected = shapely.union_all([shapely.Polygon(v) for v in last.values()])
 
-    domain_id = args.domain_id if args.domain_id is not None else random_domain_id()
-    log_dir = Path(args.log_dir or tempfile.mkdtemp(prefix="bench_realtime_"))
-    log_dir.mkdir(parents=True, exist_ok=True)
-    nominal_ms = 1000.0 / args.rate_hz
-    zone_at = args.seconds / 2 if args.zone_at is None else args.zone_at
-    print(f"background load: {args.load} busy process(es) on {os.cpu_count()} cores")
-    print(f"realtime benchmark: model {args.model}, configuration {args.configuration}, "
-          f"{args.rate_hz:g} Hz, {args.seconds:g} s, ROS domain {domain_id}, logs in {log_dir}")
-
-    context = Context()
-    rclpy.init(context=context, domain_id=domain_id)
-    node = rclpy.create_node("bench_realtime", context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    children = NodeProcesses(log_dir, domain_id, threads=args.threads)
-
-    def now() -> float:
-        return time.monotonic()
-
-    setpoints: list[tuple[float, int, np.ndarray]] = []  # arrival, step, point
-    observations: dict[int, float] = {}  # step -> first arrival
-    observation_arrivals: list[float] = []
-    plans: list[tuple[float, np.ndarray]] = []
-    statuses: list[tuple[float, dict[str, str]]] = []
-    markers: list[tuple[float, int]] = []  # arrival, zones shown
-
-    def on_setpoint(msg) -> None:
-        setpoints.append((now(), step_of_stamp(msg.header.stamp, CONTROL_HZ), point_of(msg)))
-
-    def on_pusher(msg) -> None:
-        step = step_of_stamp(msg.header.stamp, CONTROL_HZ)
-        if step not in observations:
-            observations[step] = now()
-            observation_arrivals.append(observations[step])
-
-    def subscribe(key: str, msg_type, callback) -> None:
-        node.create_subscription(msg_type, TOPICS[key].name, callback, qos_profile(TOPICS[key]))
-
-    subscribe("setpoint", PointStamped, on_setpoint)
-    subscribe("pusher", PointStamped, on_pusher)
-    subscribe("plan", PathMsg, lambda msg: plans.append((now(), path_of(msg))))
-    subscribe("policy_status", DiagnosticStatus, lambda msg: statuses.append(
-        (now(), {kv.key: kv.value for kv in msg.values})))
-    subscribe("zone_markers", MarkerArray, lambda msg: markers.append((now(), zones_shown(msg))))
-    zone_pub = node.create_publisher(PolygonInstanceStamped, TOPICS["zones"].name,
-                                     qos_profile(TOPICS["zones"], "publisher"))
-    reset = node.create_client(Trigger, SERVICES["reset"].name)
-
-    def spin_until(condition, timeout: float, what: str) -> None:
-        deadline = now() + timeout
-        while not condition():
-            failure = children.failed()
-            if failure:
-                raise RuntimeError(failure)
-            if now() > deadline:
-                raise RuntimeError(f"timed out waiting for {what}")
-            executor.spin_once(timeout_sec=0.01)
-
-    def spin_for(seconds: float) -> None:
-        deadline = now() + seconds
-        while now() < deadline:
-            failure = children.failed()
-            if failure:
-                raise RuntimeError(failure)
-            executor.spin_once(timeout_sec=0.005)
+    def caught_up() -> bool:
+        return client.markers is not None and client.markers[0] > ended - 0.001 and \
+            client.markers[1].symmetric_difference(expected).area < 1e-6
 
     try:
-        children.start("sim_node", seed=args.seed, mode="realtime", rate_hz=args.rate_hz,
-                       autostart=False)
-        children.start("policy_node", model=args.model,
-                       configuration=args.configuration,
-                       configurations_file=args.configurations_file)
-        started = now()
-        spin_until(lambda: reset.service_is_ready()
-                   and all(s.get_publisher_count() >= 1 for s in node.subscriptions)
-                   and zone_pub.get_subscription_count() >= 1
-                   and node.count_subscribers(TOPICS["pusher"].name) >= 2,
-                   args.startup_timeout, "the nodes to discover each other")
-        print(f"nodes up and discovered after {now() - started:.1f} s")
-        future = reset.call_async(Trigger.Request())
-        spin_until(future.done, 10.0, "the sim's reset")
-        spin_until(lambda: len(setpoints) > 0, 30.0, "the first setpoint")
-        begin = now()
-        spin_for(zone_at)
+        client.spin_until(caught_up, 60.0, "the zones in force to equal the last messages")
+        caught = f"{1000 * (client.markers[0] - ended):.0f} ms after the flood ended"
+    except RuntimeError:
+        caught = "not within 60 s"
+    client.spin_for(0.5)
+    status = client.status
+    print(f"  flood: {sent} messages in {ended - flood_start:.1f} s ({FLOOD_IDS} ids); zones in "
+          f"force = last message per id {caught}; policy counted {status.get('zone_messages')} "
+          f"messages, {status.get('zones_refused')} refused, in {status.get('zone_batches')} "
+          f"batches")
+    print(f"  setpoint period p99: {1000 * np.percentile(quiet, 99):.1f} ms without the flood, "
+          f"{1000 * np.percentile(flooded, 99):.1f} ms during it")
+    client.call(client.clear, client.Trigger.Request(), "clear zones")
 
-        # The zone, published mid-run.
-        if args.zone == "auto":
-            spin_until(lambda: len(plans) > 0, 10.0, "a plan")
-            vertices = auto_zone(plans[-1][1], args.zone_size)
-        else:
-            vertices = parse_zone(args.zone)
-        old_plan = plans[-1][1] if plans else np.zeros((0, 2))
-        n_setpoints, n_statuses, n_markers = len(setpoints), len(statuses), len(markers)
-        msg = zone_message(ZONE_ID, vertices, node.get_clock().now().to_msg())
-        published = now()
-        zone_pub.publish(msg)
-        spin_for(max(0.0, args.seconds - (now() - begin)))
+
+def report(name: str, result: Condition, nominal: float) -> None:
+    periods = np.array(result.periods)
+    jitter = np.abs(periods - nominal)
+    latency = np.array(result.latencies)
+    reacted = np.array(result.reacted)
+
+    def ms(values: np.ndarray) -> str:
+        if len(values) == 0:
+            return "n/a"
+        return (f"median {1000 * np.median(values):.1f}, p99 "
+                f"{1000 * np.percentile(values, 99):.1f}, max {1000 * np.max(values):.1f} ms")
+
+    print(f"  {name}: {result.trials} trials ({result.skipped} skipped: no room for the zone)")
+    print(f"    setpoint period median {1000 * np.median(periods):.1f} ms over {len(periods)} "
+          f"periods; jitter p99 {1000 * np.percentile(jitter, 99):.1f} ms, max "
+          f"{1000 * np.max(jitter):.1f} ms")
+    print(f"    zone published -> setpoint in force respects it: {ms(latency)}")
+    print(f"    ... in the {len(reacted)} trials where the held setpoint did not: {ms(reacted)}")
+    print(f"    setpoints inside a zone after that: {result.inside_after}; steps with the "
+          f"pusher's disc in a zone it did not start in: {result.overlap_steps}")
+
+
+def run_condition(args: argparse.Namespace, loaded: bool) -> None:
+    label = f"loaded ({args.load} busy process(es))" if loaded else "idle"
+    print(f"\n== {label}, {os.cpu_count()} cores, {args.rate_hz:g} Hz ==", flush=True)
+    load = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
+            for _ in range(args.load if loaded else 0)]
+    try:
+        for index, configuration in enumerate(args.configurations):
+            domain_id = random_domain_id()
+            base = Path(args.log_dir or tempfile.mkdtemp(prefix="bench_realtime_"))
+            log_dir = base / f"{label[:6]}_{configuration}"
+            log_dir.mkdir(parents=True, exist_ok=True)
+            children = NodeProcesses(log_dir, domain_id)
+            client = Client(domain_id, children)
+            try:
+                children.start("sim_node", seed=FIRST_SEED, mode="realtime",
+                               rate_hz=args.rate_hz, autostart=False)
+                children.start("policy_node", model=args.model, configuration=configuration,
+                               mode="realtime", rate_hz=args.rate_hz)
+                client.spin_until(client.discovered, args.startup_timeout,
+                                  "the nodes to discover each other")
+                result = Condition()
+                for trial in range(args.trials):
+                    run_trial(client, trial, FIRST_SEED + trial, args, result)
+                    print(".", end="", flush=True)
+                print()
+                report(configuration, result, 1.0 / args.rate_hz)
+                if index == 0 and args.flood_hz > 0:
+                    flood(client, args)
+            finally:
+                children.stop_all()
+                client.close()
+        if loaded and not args.no_trial:
+            started = time.monotonic()
+            done = subprocess.run([sys.executable, "-m", "constrained_diffusion_ros.evaluation"
+                                   ".trial", "--output", tempfile.mkdtemp(prefix="trial_")],
+                                  capture_output=True, text=True, cwd=ROOT)
+            tail = (done.stdout + done.stderr).strip().splitlines()[-1:]
+            print(f"  trial under load: exit {done.returncode} after "
+                  f"{time.monotonic() - started:.0f} s; {' '.join(tail)}")
     finally:
-        children.stop_all()
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
-
-    # ---- report
-    window = [s for s in setpoints if begin <= s[0]]
-    steps = [s[1] for s in window]
-    missed = (max(steps) - min(steps) + 1 - len(set(steps))) if steps else 0
-    print(f"setpoints: {len(window)} in {args.seconds:g} s, {missed} steps without one")
-    period_report("setpoint", [s[0] for s in window], nominal_ms)
-    period_report("sim observation", [t for t in observation_arrivals if t >= begin], nominal_ms)
-    response = np.array([1000 * (t - observations[step]) for t, step, _ in window
-                         if step in observations])
-    print(f"policy response (observation arrival -> setpoint arrival): {stats_ms(response)}")
-    planning = np.array([float(v["planning_ms"]) for t, v in statuses if t >= begin])
-    print(f"policy planning_ms per setpoint (status): {stats_ms(planning)}")
-
-    zone_text = ";".join(f"{x:.0f},{y:.0f}" for x, y in vertices)
-    print(f"zone {ZONE_ID} published at {published - begin:.1f} s: {zone_text}")
-    shown = [t for t, count in markers[n_markers:] if count >= 1]
-    print("  zone markers from the policy: " + (f"{1000 * (shown[0] - published):.1f} ms after "
-                                                 "publishing" if shown else "never"))
-    before = statuses[n_statuses - 1][1].get("replan_latency_ms") if n_statuses else None
-    latency = next((v["replan_latency_ms"] for _, v in statuses[n_statuses:]
-                    if v.get("zones") == "1" and v.get("replan_latency_ms") != before), None)
-    print(f"  policy_status replan_latency_ms (zone arrival -> new plan): "
-          f"{latency + ' ms' if latency else 'none reported'}")
-    after = setpoints[n_setpoints:]
-    off_plan = next(((t, step) for t, step, point in after if len(old_plan) == 0
-                     or np.min(np.linalg.norm(old_plan - point, axis=1)) > MAX_POINT_GAP), None)
-    if off_plan is None:
-        print("  no setpoint off the old plan after the zone")
-    else:
-        t, step = off_plan
-        print(f"  first setpoint off the old plan: {1000 * (t - published):.1f} ms after "
-              f"publishing (step {step}, {sum(s[0] < t for s in after)} old-plan setpoints "
-              "before it)")
-    import shapely
-
-    zone_shape = shapely.Polygon(vertices)
-    inside = sum(zone_shape.contains(shapely.Point(*point)) for t, _, point in after
-                 if off_plan is not None and t >= off_plan[0])
-    print(f"  setpoints inside the zone from then on: {inside}")
-    return 0
+        for process in load:
+            process.kill()
+            process.wait()
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    # Ctrl-C and SIGTERM both end the run with KeyboardInterrupt, so the node processes are
-    # stopped either way (SIGINT explicitly too: a shell starts background jobs ignoring it).
+    if args.trials < 1 or args.rate_hz <= 0:
+        print("bench_realtime: --trials and --rate-hz must be positive", file=sys.stderr)
+        return 2
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, signal.default_int_handler)
-    # A known background load, started and stopped here: one busy core per process.
-    load = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
-            for _ in range(args.load)]
+    print(f"realtime benchmark: model {args.model}, configurations {args.configurations}")
     try:
-        return run(args)
+        for condition in args.conditions:
+            run_condition(args, loaded=condition == "loaded")
     except KeyboardInterrupt:
         print("interrupted; node processes stopped", file=sys.stderr)
         return 130
     except RuntimeError as error:
         print(f"bench_realtime: {error}", file=sys.stderr)
         return 1
-    finally:
-        for process in load:
-            process.kill()
-            process.wait()
+    return 0
 
 
 if __name__ == "__main__":

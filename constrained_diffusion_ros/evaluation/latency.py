@@ -77,6 +77,8 @@ def run(args: argparse.Namespace) -> int:
     runs = [(c, d, h) for c in args.configs for d in args.delays
             for h in (HANDOVERS if d > 0 else HANDOVERS[:1])]
     rows = []
+    output = Path(args.output)
+    output.mkdir(parents=True, exist_ok=True)
     for name, delay, handover in tqdm(runs, desc="latency", unit="run"):
         _, log, first_rows = evaluate_configurations(
             policy, [known_configs[name]], [scenarios], seeds, args.steps, progress=False,
@@ -91,12 +93,9 @@ def run(args: argparse.Namespace) -> int:
                          "r": metrics["r"], "r_body": metrics["r_body"],
                          "jump_at_handover_px": jump, "step_within_chunk_px": within,
                          "episodes": len(seeds)})
-    output = Path(args.output)
-    output.mkdir(parents=True, exist_ok=True)
-    (output / "latency.json").write_text(json.dumps(rows, indent=1) + "\n")
-    table = markdown(rows, args)
-    (output / "latency.md").write_text(table)
-    print(table)
+        (output / "latency.json").write_text(json.dumps(rows, indent=1) + "\n")  # as it goes
+        (output / "latency.md").write_text(markdown(rows, args))
+    print(markdown(rows, args))
     return 0
 
 

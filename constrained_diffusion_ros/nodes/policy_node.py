@@ -1,13 +1,20 @@
 """policy_node: the constrained diffusion policy as a ROS 2 node.
 
-Answers every simulator observation (keypoints + pusher with the same stamp) with one setpoint
-from its current action chunk; replans when the chunk runs out, or at once when a zone arrives
-that the rest of the chunk would violate. Zones come in as id-keyed polygons and are validated;
-a malformed one is refused with a warning while the zones in force stay in force.
+Two modes, as the simulator's. `lockstep` (default): every observation (keypoints + pusher with
+the same stamp) is answered with one setpoint from the chunk in force, planned in the callback,
+so a trial is deterministic and equals the in-process evaluation bit for bit. `realtime`: a
+control clock publishes one setpoint per tick (`rate_hz`) from the latest observation while a
+background thread plans the next chunk (`RealtimeController`); a zone that arrives is checked
+at once and a safe setpoint published before the next tick.
+
+Zones come in as id-keyed polygons, taken in batches as fast as they come and coalesced to the
+last message per id; a malformed one, or one over the caps, is refused with a warning while the
+zones in force stay in force. Counters of both are in `policy_status`.
 """
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 
@@ -25,10 +32,16 @@ from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.planning.config import load_configurations
 from constrained_diffusion_ros.planning.executor import ChunkExecutor
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
+from constrained_diffusion_ros.planning.realtime import RealtimeController
 from constrained_diffusion_ros.planning.robot import RobotModel
 from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
-from constrained_diffusion_ros.zones.live import LiveZones
+from constrained_diffusion_ros.zones.live import (
+    DEFAULT_MAX_VERTICES,
+    DEFAULT_MAX_ZONES,
+    BatchOutcome,
+    LiveZones,
+)
 from msg_schemas import FRAME_ID, SERVICES, TOPICS, qos_profile
 from msg_schemas.conversions import (
     path_message,
@@ -50,6 +63,9 @@ ROBOT_PARAMETERS = {  # robot.<name>: what the planner knows of the robot; defau
     "control_hz": "setpoints per second; stamps are control steps at this rate",
     "physics_hz": "PD integration rate the shield predicts the pusher with",
 }
+MODES = ("lockstep", "realtime")
+ZONE_BATCH_MAX = 10_000  # zone messages taken in one callback at most
+STATUS_PERIOD_S = 0.5  # realtime: status this often (zone markers: on the tick after a change)
 
 
 class PolicyNode(Node):
@@ -60,12 +76,36 @@ class PolicyNode(Node):
         self.declare_parameter("configurations_file", str(config_dir() / "configurations.yaml"))
         self.declare_parameter("noise_seed", 0)
         self.declare_parameter("zone_lifetime", 0.0)  # s; 0: zones stay until removed
+        self.mode = self._read_only("mode", "lockstep", "lockstep: one setpoint per "
+                                    "observation, planned in the callback; realtime: one per "
+                                    "tick of rate_hz, planned in the background")
+        self.rate_hz = self._read_only("rate_hz", 10.0, "realtime: setpoints per second")
+        self.lead = self._read_only("lead", -1, "realtime: steps before the chunk runs out at "
+                                    "which the next plan starts; -1: from the measured planning "
+                                    "time")
+        self.soft = self._read_only("prefix_soft", 4, "realtime: waypoints after the committed "
+                                    "ones drawn toward the chunk in force; -1: no inpainting")
+        threads = self._read_only("torch_threads", 1, "torch threads of this process (1 is "
+                                  "best on 2 cores; about half the cores on bigger machines)")
+        max_zones = self._read_only("max_zones", DEFAULT_MAX_ZONES, "zones in force at most")
+        max_vertices = self._read_only("max_vertices", DEFAULT_MAX_VERTICES,
+                                       "vertices per zone at most")
+        if self.mode not in MODES:
+            raise ValueError(f"parameter mode must be one of {MODES}, got {self.mode!r}")
+        if not (math.isfinite(self.rate_hz) and self.rate_hz > 0) or threads < 1:
+            raise ValueError("parameters rate_hz and torch_threads must be positive")
+        torch.set_num_threads(threads)
+        if self.mode == "realtime":  # the clock thread waits at most 1 ms for the planner's GIL
+            sys.setswitchinterval(0.001)
         self.robot = self._declare_robot()
         self.policy = load_policy(self.get_parameter("model").value)
         self.configurations = load_configurations(
             self.get_parameter("configurations_file").value)
-        self.zones = LiveZones()
+        self.zones = LiveZones(max_zones, max_vertices)
+        self.zone_counts = {"zone_messages": 0, "zones_applied": 0, "zones_refused": 0,
+                            "zone_batches": 0}
         self.generator = torch.Generator().manual_seed(self.get_parameter("noise_seed").value)
+        self.controller: RealtimeController | None = None
         self._use_configuration(self.get_parameter("configuration").value)
         self.add_on_set_parameters_callback(self._on_parameters)
 
@@ -74,22 +114,36 @@ class PolicyNode(Node):
         self.marker_pub = self._publisher("zone_markers", MarkerArray)
         self.status_pub = self._publisher("policy_status", DiagnosticStatus)
         # Zones first: when a zone and an observation are ready together, the zone is taken first.
-        self._subscribe("zones", PolygonInstanceStamped, self._on_zone)
+        self.zone_sub = self._subscribe("zones", PolygonInstanceStamped, self._on_zone)
         self._subscribe("keypoints", PolygonStamped, self._on_keypoints)
         self._subscribe("pusher", PointStamped, self._on_pusher)
         self.create_service(Trigger, SERVICES["clear_zones"].name, self._on_clear)
         self.create_timer(0.2, self._expire_zones)
+        self._markers_due = False
+        if self.mode == "realtime":
+            wake = self.create_guard_condition(self._on_plan_ready)
+            self.controller = RealtimeController(
+                self.planner, self.zones, self.rate_hz, None if self.lead < 0 else self.lead,
+                self.soft, self.get_parameter("noise_seed").value, wake.trigger)
+            self.create_timer(1.0 / self.rate_hz, self._on_tick)
+            self.create_timer(STATUS_PERIOD_S, self._on_status_timer)
 
         self.keypoints: dict[float, np.ndarray] = {}
         self.pushers: dict[float, np.ndarray] = {}
         self.last_stamp = -1.0
+        self.latest_stamp = None  # realtime: the newest observation's stamp
         self.last_setpoint: PointStamped | None = None
         self.violations = 0
         self.zone_change_time: float | None = None
         self.replan_latency_ms = float("nan")
         self.get_logger().info(
-            f"policy from {self.get_parameter('model').value}, configuration "
+            f"{self.mode} policy from {self.get_parameter('model').value}, configuration "
             f"{self.config.name!r}")
+
+    def destroy_node(self) -> None:
+        if self.controller is not None:
+            self.controller.shutdown()
+        super().destroy_node()
 
     # -- wiring ---------------------------------------------------------------------------------
 
@@ -97,9 +151,13 @@ class PolicyNode(Node):
         return self.create_publisher(msg_type, TOPICS[topic].name,
                                      qos_profile(TOPICS[topic], "publisher"))
 
-    def _subscribe(self, topic: str, msg_type, callback) -> None:
-        self.create_subscription(msg_type, TOPICS[topic].name, callback,
-                                 qos_profile(TOPICS[topic]))
+    def _subscribe(self, topic: str, msg_type, callback):
+        return self.create_subscription(msg_type, TOPICS[topic].name, callback,
+                                        qos_profile(TOPICS[topic]))
+
+    def _read_only(self, name: str, default, description: str):
+        descriptor = ParameterDescriptor(description=description, read_only=True)
+        return self.declare_parameter(name, default, descriptor).value
 
     def _declare_robot(self) -> RobotModel:
         """robot.* parameters (read at start), PushT's by default."""
@@ -122,6 +180,8 @@ class PolicyNode(Node):
         self.config = self.configurations[name]
         self.planner = ConstrainedPlanner(self.policy, self.config, self.robot)
         self.chunk_executor = ChunkExecutor(self.planner, self.zones, self.generator)
+        if self.controller is not None:
+            self.controller.use_planner(self.planner)
 
     def _on_parameters(self, parameters) -> SetParametersResult:
         for parameter in parameters:
@@ -154,6 +214,9 @@ class PolicyNode(Node):
     def _maybe_act(self, stamp: float, stamp_msg) -> None:
         if stamp not in self.keypoints or stamp not in self.pushers:
             return
+        if self.controller is not None:
+            self._observe(stamp, stamp_msg)
+            return
         if stamp == self.last_stamp:
             # The simulator re-sends an observation until answered: the answer may have been
             # lost to a subscriber not yet matched, so send it again (no new plan, no noise).
@@ -180,6 +243,38 @@ class PolicyNode(Node):
             self._after_plan(self.chunk_executor.last_plan.chunks[0])
         self._publish_status(planning_ms)
 
+    def _observe(self, stamp: float, stamp_msg) -> None:
+        """Realtime: the newest observation, for the next tick and the next plan."""
+        observation = pusht_observation(self.keypoints.pop(stamp), self.pushers.pop(stamp))
+        for old in [s for s in self.keypoints if s < stamp]:
+            del self.keypoints[old]
+        for old in [s for s in self.pushers if s < stamp]:
+            del self.pushers[old]
+        if not np.all(np.isfinite(observation)):
+            self.get_logger().warning("observation with NaN/inf ignored")
+            return
+        self.controller.observe(step_of_stamp(stamp_msg, self.robot.control_hz), observation)
+        self.latest_stamp = stamp_msg
+
+    def _on_tick(self) -> None:
+        """Realtime: exactly one setpoint per tick, never waiting on planning."""
+        setpoint = self.controller.tick()
+        if setpoint is not None:
+            self._publish_setpoint(setpoint, self.latest_stamp)
+        if self._markers_due:  # viewers see zone changes once per tick, however many came
+            self._markers_due = False
+            self._publish_markers()
+
+    def _on_plan_ready(self) -> None:
+        before = self.controller.stats.plans_installed
+        self.controller.install_results()
+        if self.controller.stats.plans_installed != before:
+            chunk = self.controller.queue.waypoints[0]
+            self._after_plan(chunk)
+
+    def _on_status_timer(self) -> None:
+        self._publish_status(self.controller.stats.last_plan_ms)
+
     def _publish_setpoint(self, setpoint: np.ndarray, stamp_msg) -> None:
         """Stamped with the observation's own stamp (exact nanoseconds): lockstep matches it."""
         msg = point_message(setpoint, stamp_msg)
@@ -195,11 +290,18 @@ class PolicyNode(Node):
         self.plan_pub.publish(path_message(chunk, self.get_clock().now().to_msg()))
 
     def _publish_status(self, planning_ms: float) -> None:
-        values = {"configuration": self.config.name, "violations": self.violations,
+        values = {"configuration": self.config.name, "mode": self.mode,
+                  "violations": self.violations,
                   "plans": self.chunk_executor.stats.planner_calls,
                   "planning_ms": f"{planning_ms:.1f}",
                   "replan_latency_ms": f"{self.replan_latency_ms:.1f}",
-                  "zones": len(self.zones)}
+                  "zones": len(self.zones), **self.zone_counts}
+        if self.controller is not None:
+            stats = self.controller.stats
+            values.update(plans=stats.plans_installed, plans_dropped=stats.plans_dropped,
+                          waypoints_skipped=stats.waypoints_skipped,
+                          held_ticks=stats.held_ticks, zone_reactions=stats.zone_reactions,
+                          lead=self.controller.lead)
         status = DiagnosticStatus(level=DiagnosticStatus.OK, name="policy_node",
                                   message="running", hardware_id="pusht")
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
@@ -208,33 +310,70 @@ class PolicyNode(Node):
     # -- zones ------------------------------------------------------------------------------------
 
     def _on_zone(self, msg: PolygonInstanceStamped) -> None:
-        zone_id = int(msg.polygon.id)
-        if msg.header.frame_id not in ("", FRAME_ID):
-            self.get_logger().warning(f"zone {zone_id} refused: frame {msg.header.frame_id!r} "
-                                      f"is not {FRAME_ID!r}")
-            return
-        vertices = [(p.x, p.y) for p in msg.polygon.polygon.points]
+        """Takes every zone message waiting, not just this one: a flood is applied as one
+        batch (the last message per id) and the union is rebuilt once, when next read."""
+        messages = [msg, *self._take_waiting(self.zone_sub, ZONE_BATCH_MAX - 1)]
+        updates, refused = [], 0
+        for message in messages:
+            zone_id = int(message.polygon.id)
+            if message.header.frame_id not in ("", FRAME_ID):
+                refused += 1
+                self.get_logger().warning(
+                    f"zone {zone_id} refused: frame {message.header.frame_id!r} is not "
+                    f"{FRAME_ID!r}", throttle_duration_sec=1.0)
+                continue
+            updates.append((zone_id, [(p.x, p.y) for p in message.polygon.polygon.points]))
         lifetime = self.get_parameter("zone_lifetime").value or None
-        before = self.zones.version
+        outcome = self.zones.apply(updates, time.monotonic(), lifetime)
+        self._count_zones(outcome, refused)
+        if outcome.changed:
+            self._zones_changed()
+
+    def _take_waiting(self, subscription, limit: int) -> list:
+        """The messages already queued on `subscription` (rclpy's own take, as its executor
+        does), so a callback can handle a burst at once."""
+        taken = []
         try:
-            self.zones.upsert(zone_id, vertices, time.monotonic(), lifetime)
-        except ValueError as error:
-            self.get_logger().warning(f"zone {zone_id} refused, zones in force kept: {error}")
-            return
-        if self.zones.version != before:
-            self.zone_change_time = time.monotonic()
+            while len(taken) < limit:
+                with subscription.handle:
+                    got = subscription.handle.take_message(subscription.msg_type,
+                                                           subscription.raw)
+                if got is None:
+                    break
+                taken.append(got[0])
+        except (AttributeError, TypeError):  # another rclpy: one message per callback
+            pass
+        return taken
+
+    def _count_zones(self, outcome: BatchOutcome, refused_frames: int) -> None:
+        counts = self.zone_counts
+        counts["zone_batches"] += 1
+        counts["zone_messages"] += outcome.received + refused_frames
+        counts["zones_applied"] += outcome.applied
+        counts["zones_refused"] += len(outcome.refused) + refused_frames
+        for zone_id, reason in outcome.refused:
+            self.get_logger().warning(f"zone {zone_id} refused, zones in force kept: {reason}",
+                                      throttle_duration_sec=1.0)
+
+    def _zones_changed(self) -> None:
+        """In realtime the held setpoint is checked now and a safe one published at once."""
+        self.zone_change_time = time.monotonic()
+        if self.controller is None:
             self._publish_markers()
+            return
+        self._markers_due = True
+        safe = self.controller.zones_changed()
+        if safe is not None and self.latest_stamp is not None:
+            self._publish_setpoint(safe, self.latest_stamp)
 
     def _expire_zones(self) -> None:
         if self.zones.expire(time.monotonic()):
-            self.zone_change_time = time.monotonic()
-            self._publish_markers()
+            self._zones_changed()
 
     def _on_clear(self, _request, response):
         count = len(self.zones)
         self.zones.clear()
-        self.zone_change_time = time.monotonic()
-        self._publish_markers()
+        self._zones_changed()
         response.success, response.message = True, f"cleared {count} zones"
         return response
 

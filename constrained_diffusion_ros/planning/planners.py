@@ -120,6 +120,24 @@ class ConstrainedPlanner:
             return torch.zeros(waypoints.shape[:-1], dtype=torch.bool)
         return self.effective_area(zones).contains(waypoints)
 
+    def keep_out(self, zones: RestrictedArea | None, points: np.ndarray) -> np.ndarray:
+        """(N, 2) waypoints planned before `zones` came: those inside the area its plans keep
+        waypoints out of move just outside it. Fast, for the zone callback: one step along the
+        way out, and the full projection only where that step is not enough."""
+        if zones is None or not self.config.constrains:
+            return points
+        area, margin = self.effective_area(zones), self.config.margin + 1e-3
+        p = torch.from_numpy(np.asarray(points, float))
+        depth = area.signed_distance(p)
+        inside = depth < self.config.margin
+        if not inside.any():
+            return points
+        stepped = p + (margin - depth)[:, None] * area.outward_direction(p)
+        stuck = inside & (area.signed_distance(stepped) < self.config.margin)
+        if stuck.any():
+            stepped[stuck] = area.project_out(p[stuck], margin)
+        return torch.where(inside[:, None], stepped, p).numpy()
+
     def guard(self, zones: RestrictedArea | None, observations: np.ndarray,
               setpoints: np.ndarray, step: int) -> np.ndarray:
         if self.shield is None:

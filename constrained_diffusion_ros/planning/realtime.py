@@ -203,3 +203,192 @@ class BackgroundPlanner:
             finally:
                 with self._wake:
                     self._busy = False
+
+
+@dataclass
+class ControllerStats:
+    plans_asked: int = 0
+    plans_installed: int = 0
+    plans_dropped: int = 0  # stale: another configuration or episode, or unsafe under new zones
+    waypoints_skipped: int = 0  # at install, their time had passed
+    held_ticks: int = 0  # ticks with no waypoint to execute (the last setpoint held)
+    zone_reactions: int = 0  # setpoints changed at once because a zone arrived
+    last_plan_ms: float = float("nan")
+
+
+class RealtimeController:
+    """The live action filter, free of ROS: the node feeds it observations, zone changes and
+    clock ticks, and publishes what it returns.
+
+    A `BackgroundPlanner` plans from the latest observations `lead` steps before the chunk in
+    force runs out (or at once when new zones put the rest of it where the planner keeps
+    waypoints out of); its chunk is installed as soon as it arrives with the steps that passed
+    skipped, and denoised with the committed waypoints inpainted. Every setpoint, on each tick
+    and at once when zones change, passes the planner's guard (the shield) against the zones in
+    force at that instant. Call everything but `shutdown` from one thread (the node's executor);
+    `wake` is called from the worker when a plan is ready, to get `install_results` called.
+    """
+
+    def __init__(self, planner: Any, zones: Any, rate_hz: float, lead: int | None = None,
+                 soft: int = 4, noise_seed: int = 0,
+                 wake: Callable[[], None] = lambda: None) -> None:
+        config = planner.policy_config
+        self.planner, self.zones, self.rate_hz = planner, zones, rate_hz
+        self.n_action_steps, self.first_executed = config.n_action_steps, config.first_executed
+        self.n_obs_steps = config.n_obs_steps
+        self.fixed_lead, self.soft, self.noise_seed, self.wake = lead, soft, noise_seed, wake
+        self.queue = ActionQueue(1, config.n_action_steps)
+        self.generation = 0
+        self.observations: dict[int, np.ndarray] = {}
+        self.step: int | None = None  # the newest observation's control step
+        self.sent: np.ndarray | None = None  # (2,) the setpoint sent last
+        self.plan_seconds = 0.0  # running estimate of one planning call
+        self.stats = ControllerStats()
+        self._results: list[PlanResult] = []
+        self._results_lock = threading.Lock()
+        self.worker = BackgroundPlanner(self._plan, self._on_result, noise_seed)
+
+    # -- inputs ---------------------------------------------------------------------------
+
+    def observe(self, step: int, observation: np.ndarray) -> None:
+        """The observation (obs_dim,) of control step `step`; an earlier step than the newest
+        starts a new episode."""
+        if self.step is not None and step < self.step:
+            self.new_episode()
+        self.observations[step] = np.asarray(observation, dtype=np.float32)
+        for old in [s for s in self.observations if s <= step - self.n_obs_steps]:
+            del self.observations[old]
+        self.step = step
+
+    def new_episode(self) -> None:
+        self.generation += 1
+        self.queue.clear()
+        self.observations.clear()
+        self.step, self.sent = None, None
+        self.planner.reset()
+        self.worker.reseed(self.noise_seed)
+
+    def use_planner(self, planner: Any) -> None:
+        """Another configuration: plans in flight are dropped, a new one asked for; the chunk
+        in force executes until it arrives."""
+        self.planner = planner
+        self.generation += 1
+        if self.step is not None:
+            self._ask(prefix=False)
+
+    @property
+    def lead(self) -> int:
+        """Steps before the chunk runs out at which the next plan is asked for."""
+        if self.fixed_lead is not None:
+            return self.fixed_lead
+        return int(min(self.n_action_steps, self.delay_steps + 1))
+
+    @property
+    def delay_steps(self) -> int:
+        """Control steps a plan is expected to take."""
+        return max(1, int(np.ceil(self.plan_seconds * self.rate_hz)))
+
+    # -- outputs --------------------------------------------------------------------------
+
+    def tick(self) -> np.ndarray | None:
+        """The setpoint (2,) for this tick, or None before the first observation."""
+        self.install_results()
+        if self.step is None:
+            return None
+        step = self.step
+        waypoint = self.queue.at(step)[0]
+        if np.isnan(waypoint).any():
+            self.stats.held_ticks += 1
+            waypoint = self.sent if self.sent is not None else self._pusher()
+        if not self.worker.busy and self.queue.remaining(step)[0] <= self.lead:
+            self._ask(prefix=True)
+        return self._guarded(waypoint)
+
+    def zones_changed(self) -> np.ndarray | None:
+        """Zones changed: replan at once if the rest of the chunk is now where the planner keeps
+        waypoints out of, and return a safe setpoint to publish now if the one held is not."""
+        if self.step is None:
+            return None
+        area = self.zones.area_at(self.step)
+        remaining = int(self.queue.remaining(self.step)[0])
+        if area is not None and remaining > 0:
+            rest = self.queue.upcoming(np.array([0]), self.step, remaining)
+            if self.planner.violates(torch.from_numpy(rest), area, np.array([0])).any():
+                self._ask(prefix=False)
+        if self.sent is None:
+            return None
+        before = self.sent.copy()
+        after = self._guarded(before)
+        if np.array_equal(after, before):
+            return None
+        self.stats.zone_reactions += 1
+        return after
+
+    def install_results(self) -> None:
+        """Install the plans that arrived (on the caller's thread)."""
+        with self._results_lock:
+            results, self._results = self._results, []
+        for result in results:
+            job = result.job
+            self.plan_seconds = (result.seconds if self.plan_seconds == 0.0
+                                 else 0.7 * self.plan_seconds + 0.3 * result.seconds)
+            self.stats.last_plan_ms = 1000 * result.seconds
+            if job.generation != self.generation or self.step is None:
+                self.stats.plans_dropped += 1
+                continue
+            chunk = result.chunk[None]
+            if job.zone_version != self.zones.version_at(self.step):
+                area = self.zones.area_at(self.step)
+                if area is not None and self.planner.violates(
+                        torch.from_numpy(chunk), area, np.array([0])).any():
+                    self.stats.plans_dropped += 1  # planned before the zones that it enters
+                    self._ask(prefix=False)
+                    continue
+            skipped = self.queue.install(np.array([0]), chunk, job.step, self.step)
+            self.stats.plans_installed += 1
+            self.stats.waypoints_skipped += int(skipped[0])
+
+    def shutdown(self) -> None:
+        self.worker.shutdown()
+
+    # -- internals ------------------------------------------------------------------------
+
+    def _pusher(self) -> np.ndarray:
+        return self.planner.robot.pusher(self.observations[self.step]).astype(float)
+
+    def _guarded(self, setpoint: np.ndarray) -> np.ndarray:
+        """The zones in force now decide: a waypoint planned before them is moved out of them
+        first (the planner's `keep_out`), then the shield has the last word."""
+        area = self.zones.area_at(self.step)
+        latest = self.observations[self.step][None]
+        setpoint = np.asarray(setpoint, float)[None]
+        if area is not None and hasattr(self.planner, "keep_out"):
+            setpoint = self.planner.keep_out(area, setpoint)
+        self.sent = self.planner.guard(area, latest, setpoint, self.step)[0]
+        return self.sent
+
+    def _history(self) -> torch.Tensor:
+        frames, latest = [], self.observations[self.step]
+        for step in range(self.step - self.n_obs_steps + 1, self.step + 1):
+            frames.append(self.observations.get(step, frames[-1] if frames else latest))
+        return torch.from_numpy(np.stack(frames)[None])
+
+    def _ask(self, prefix: bool) -> None:
+        """Submit a plan from the newest observations (replacing any not yet started)."""
+        committed = None
+        if prefix and self.soft >= 0:
+            committed = committed_prefix(self.queue, np.array([0]), self.step, self.lead,
+                                         self.soft, self.first_executed)
+        self.stats.plans_asked += 1
+        self.worker.submit(PlanJob(self.generation, self.step, self._history(),
+                                   self.zones.area_at(self.step),
+                                   self.zones.version_at(self.step), committed))
+
+    def _plan(self, job: PlanJob, generator: torch.Generator) -> np.ndarray:
+        chunk = self.planner.plan(job.observations, job.zones, None, generator, job.prefix)
+        return chunk[0, self.first_executed:].numpy().astype(float)
+
+    def _on_result(self, result: PlanResult) -> None:
+        with self._results_lock:
+            self._results.append(result)
+        self.wake()

@@ -11,13 +11,19 @@ import torch
 from samples import chunk_of_rows
 from test_executor import CONFIG, Scripted
 
+from constrained_diffusion_ros.planning.config import ConstraintConfig
 from constrained_diffusion_ros.planning.executor import ChunkExecutor
+from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.planning.realtime import (
     ActionQueue,
     BackgroundPlanner,
     PlanJob,
+    RealtimeController,
     committed_prefix,
 )
+from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
+from constrained_diffusion_ros.pusht import PUSHT_ROBOT
+from constrained_diffusion_ros.zones import LiveZones, rectangle
 
 
 def test_a_plan_installed_late_skips_the_waypoints_whose_time_has_passed() -> None:
@@ -153,3 +159,85 @@ def test_zero_delay_is_the_lockstep_executor_whatever_the_handover() -> None:
     np.testing.assert_array_equal(runs[0], runs[2])
     with pytest.raises(ValueError, match="handover"):
         ChunkExecutor(Scripted(), handover="later")
+
+
+# -- The live controller (what the policy node runs in real time), with a tiny policy -----------
+
+SAFE = ConstraintConfig("safe", sampler="ddim", denoising_steps=3, resample=True, push=10,
+                        project=True, inflate=True, path_repair=True, shield=True)
+
+
+def observation_with_pusher(x: float, y: float) -> np.ndarray:
+    obs = np.full(CONFIG.obs_dim, 256.0, dtype=np.float32)
+    obs[18:20] = (x, y)
+    return obs
+
+
+def installed(controller: RealtimeController) -> None:
+    """Wait for the worker's plan and install it, as the node does when woken."""
+    for _ in range(5000):
+        if not controller.worker.busy:
+            break
+        threading.Event().wait(0.002)
+    controller.install_results()
+
+
+def test_the_controller_installs_a_late_plan_without_the_steps_that_passed(
+        tiny_policy: DiffusionPolicy) -> None:
+    controller = RealtimeController(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT),
+                                    LiveZones(), rate_hz=10.0)
+    try:
+        assert controller.tick() is None  # nothing observed yet: nothing to send
+        controller.observe(0, observation_with_pusher(100, 100))
+        held = controller.tick()  # no chunk yet: the pusher held where it is; plan asked
+        np.testing.assert_allclose(held, [100, 100])
+        for step in (1, 2, 3):  # the plan takes three steps to come in
+            controller.observe(step, observation_with_pusher(100, 100))
+        installed(controller)
+        assert controller.stats.plans_installed == 1
+        assert controller.stats.waypoints_skipped == 3
+        chunk = controller.queue.waypoints[0]
+        np.testing.assert_allclose(controller.tick(), chunk[3])  # step 3's, not step 0's
+    finally:
+        controller.shutdown()
+
+
+def test_a_zone_arriving_mid_chunk_gets_a_safe_setpoint_before_the_next_tick(
+        tiny_policy: DiffusionPolicy) -> None:
+    zones = LiveZones()
+    controller = RealtimeController(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT), zones,
+                                    rate_hz=10.0)
+    try:
+        controller.observe(0, observation_with_pusher(200, 200))
+        controller.tick()
+        installed(controller)
+        setpoint = controller.tick()
+        x, y = setpoint
+        zones.upsert(1, rectangle(x - 20, y - 20, x + 20, y + 20), now=0.0)  # on the setpoint
+        safe = controller.zones_changed()
+        assert safe is not None and controller.stats.zone_reactions == 1
+        inflated = zones.snapshot().inflate(PUSHT_ROBOT.pusher_radius)
+        assert inflated.signed_distance(torch.tensor(safe[None])).item() > 0
+        assert controller.worker.busy or controller.stats.plans_asked == 2  # replanning
+        installed(controller)
+        assert zones.snapshot().signed_distance(torch.tensor(controller.tick()[None])) > 0
+        zones.upsert(2, rectangle(400, 400, 450, 450), now=0.0)  # far away: nothing to do
+        assert controller.zones_changed() is None
+    finally:
+        controller.shutdown()
+
+
+def test_a_new_configuration_drops_the_plan_in_flight(tiny_policy: DiffusionPolicy) -> None:
+    controller = RealtimeController(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT),
+                                    LiveZones(), rate_hz=10.0)
+    try:
+        controller.observe(0, observation_with_pusher(100, 100))
+        controller.tick()  # a plan asked for under the first configuration ...
+        controller.use_planner(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT))  # ... and one
+        installed(controller)  # for the new one: whichever was planned first
+        stats = controller.stats
+        assert stats.plans_asked == 2
+        assert stats.plans_installed + stats.plans_dropped >= 1
+        assert stats.plans_installed <= 1  # only the new configuration's plan goes in
+    finally:
+        controller.shutdown()

@@ -11,15 +11,19 @@ fixed steps); the waits only absorb process start-up and discovery.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import shapely
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import Point32, PointStamped, PolygonInstanceStamped, PolygonStamped
+from nav_msgs.msg import Path as PathMsg
 from ros_helpers import Ros, stamp_step, step_stamp
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from msg_schemas import FRAME_ID, SERVICES, TOPICS
+from sim_bridge import AGENT_RADIUS
 
 SEED = 100000
 ZONE_ID = 7
@@ -230,3 +234,61 @@ def test_zone_from_another_process_obeyed_refused_and_removed(
     assert "Traceback" not in sim_log.read_text()
 
 
+
+
+REALTIME_PERIOD_S = 4.0  # long ticks: a setpoint between two of them was not a tick's
+PUSHER = (40.0, 470.0)  # px: where the test's observations put the pusher
+
+
+def test_realtime_a_zone_mid_chunk_gets_a_safe_setpoint_before_the_next_tick(
+        ros, processes, tiny_model, configurations_file):
+    """The realtime node on its own clock: the test feeds it observations, waits for a tick
+    that executes a planned waypoint, drops a zone on that setpoint and expects a setpoint
+    outside the zone grown by the pusher radius well before the next tick."""
+    arrivals: list[tuple[float, np.ndarray]] = []
+    ros.inbox("setpoint", PointStamped, lambda m: arrivals.append(
+        (time.monotonic(), np.array([m.point.x, m.point.y]))))
+    statuses = ros.inbox("policy_status", DiagnosticStatus)
+    plans = ros.inbox("plan", PathMsg)
+    zones = ros.publisher("zones", PolygonInstanceStamped)
+    keypoints_pub = ros.publisher("keypoints", PolygonStamped)
+    pusher_pub = ros.publisher("pusher", PointStamped)
+    processes.start("policy_node", model=tiny_model, configurations_file=configurations_file,
+                    configuration="fast_safe", mode="realtime", rate_hz=1 / REALTIME_PERIOD_S)
+    graph = ros.node
+    assert ros.spin_until(lambda: all(p.get_subscription_count() >= 1
+                                      for p in (zones, keypoints_pub, pusher_pub))
+                          and graph.count_publishers(TOPICS["setpoint"].name) >= 1)
+
+    def observe(step: int) -> None:
+        keypoints = PolygonStamped()
+        keypoints.header.stamp, keypoints.header.frame_id = step_stamp(step), FRAME_ID
+        keypoints.polygon.points = [Point32(x=256.0, y=256.0 + i, z=0.0) for i in range(9)]
+        pusher = PointStamped()
+        pusher.header = keypoints.header
+        pusher.point.x, pusher.point.y = PUSHER
+        keypoints_pub.publish(keypoints)
+        pusher_pub.publish(pusher)
+
+    step = 0
+    while not plans:  # observations until a plan is in (the first tick holds the pusher)
+        observe(step)
+        step += 1
+        ros.spin_until(lambda: bool(plans), 0.5)
+    ticks = len(arrivals)
+    assert ros.spin_until(lambda: len(arrivals) > ticks, 2 * REALTIME_PERIOD_S + 5)
+    tick_time, setpoint = arrivals[-1]  # a tick that executed a planned waypoint
+    x, y = setpoint
+    zone = ((x - 15, y - 15), (x + 15, y - 15), (x + 15, y + 15), (x - 15, y + 15))
+    grown = shapely.Polygon(zone).buffer(AGENT_RADIUS - 0.5)
+    msg = PolygonInstanceStamped()
+    msg.header.frame_id, msg.polygon.id = FRAME_ID, 1
+    msg.polygon.polygon.points = [Point32(x=float(a), y=float(b), z=0.0) for a, b in zone]
+    before = len(arrivals)
+    zones.publish(msg)
+    assert ros.spin_until(lambda: len(arrivals) > before, REALTIME_PERIOD_S)
+    reaction_time, safe = arrivals[before]
+    assert reaction_time - tick_time < 0.75 * REALTIME_PERIOD_S  # not the next tick's
+    assert not grown.contains(shapely.Point(*safe)), (setpoint, safe)
+    assert ros.spin_until(lambda: statuses and int(values(statuses[-1]).get(
+        "zone_reactions", 0)) >= 1, 2 * 0.5 + 5)

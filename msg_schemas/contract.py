@@ -76,7 +76,9 @@ def qos_profile(endpoint: Endpoint, role: str = "subscriber"):
         raise ValueError(f"unknown QoS role {role!r}")
     latched = endpoint.qos == "latched"
     keeps_history = latched or role != "subscriber"
-    depth = 100 if latched else (1000 if keeps_history else 10)
+    # Latched (zones): deep enough that a burst of updates waits for the callback instead of
+    # being overwritten, and a late joiner gets every id's last message.
+    depth = 10_000 if latched else (1000 if keeps_history else 10)
     return QoSProfile(
         history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
         durability=DurabilityPolicy.TRANSIENT_LOCAL if keeps_history else DurabilityPolicy.VOLATILE)

@@ -375,7 +375,8 @@ def run_condition(args: argparse.Namespace, loaded: bool) -> None:
         if loaded and not args.no_trial:
             started = time.monotonic()
             done = subprocess.run([sys.executable, "-m", "constrained_diffusion_ros.evaluation"
-                                   ".trial", "--output", tempfile.mkdtemp(prefix="trial_")],
+                                   ".trial", "--output",
+                                   str(Path(tempfile.mkdtemp(prefix="trial_")) / "trial")],
                                   capture_output=True, text=True, cwd=ROOT)
             tail = (done.stdout + done.stderr).strip().splitlines()[-1:]
             print(f"  trial under load: exit {done.returncode} after "

@@ -320,7 +320,7 @@ class PolicyNode(Node):
                 refused += 1
                 self.get_logger().warning(
                     f"zone {zone_id} refused: frame {message.header.frame_id!r} is not "
-                    f"{FRAME_ID!r}", throttle_duration_sec=1.0)
+                    f"{FRAME_ID!r}")
                 continue
             updates.append((zone_id, [(p.x, p.y) for p in message.polygon.polygon.points]))
         lifetime = self.get_parameter("zone_lifetime").value or None
@@ -352,8 +352,7 @@ class PolicyNode(Node):
         counts["zones_applied"] += outcome.applied
         counts["zones_refused"] += len(outcome.refused) + refused_frames
         for zone_id, reason in outcome.refused:
-            self.get_logger().warning(f"zone {zone_id} refused, zones in force kept: {reason}",
-                                      throttle_duration_sec=1.0)
+            self.get_logger().warning(f"zone {zone_id} refused, zones in force kept: {reason}")
 
     def _zones_changed(self) -> None:
         """In realtime the held setpoint is checked now and a safe one published at once."""

@@ -214,8 +214,12 @@ class PolicyNode(Node):
     def _maybe_act(self, stamp: float, stamp_msg) -> None:
         if stamp not in self.keypoints or stamp not in self.pushers:
             return
-        if self.controller is not None:
-            self._observe(stamp, stamp_msg)
+        if self.controller is not None:  # realtime: kept for the next tick and the next plan
+            observation = self._take_observation(stamp)
+            if observation is not None:
+                self.controller.observe(step_of_stamp(stamp_msg, self.robot.control_hz),
+                                        observation)
+                self.latest_stamp = stamp_msg
             return
         if stamp == self.last_stamp:
             # The simulator re-sends an observation until answered: the answer may have been
@@ -223,13 +227,8 @@ class PolicyNode(Node):
             if self.last_setpoint is not None:
                 self.setpoint_pub.publish(self.last_setpoint)
             return
-        observation = pusht_observation(self.keypoints.pop(stamp), self.pushers.pop(stamp))
-        for old in [s for s in self.keypoints if s < stamp]:
-            del self.keypoints[old]
-        for old in [s for s in self.pushers if s < stamp]:
-            del self.pushers[old]
-        if not np.all(np.isfinite(observation)):
-            self.get_logger().warning("observation with NaN/inf ignored")
+        observation = self._take_observation(stamp)
+        if observation is None:
             return
         if stamp < self.last_stamp or stamp == 0.0:  # the simulator was reset: a new episode
             self.chunk_executor.reset(self.get_parameter("noise_seed").value)
@@ -243,18 +242,17 @@ class PolicyNode(Node):
             self._after_plan(self.chunk_executor.last_plan.chunks[0])
         self._publish_status(planning_ms)
 
-    def _observe(self, stamp: float, stamp_msg) -> None:
-        """Realtime: the newest observation, for the next tick and the next plan."""
+    def _take_observation(self, stamp: float) -> np.ndarray | None:
+        """The observation of `stamp` from its two messages, older halves dropped; None (with
+        a warning) when it is not finite."""
         observation = pusht_observation(self.keypoints.pop(stamp), self.pushers.pop(stamp))
-        for old in [s for s in self.keypoints if s < stamp]:
-            del self.keypoints[old]
-        for old in [s for s in self.pushers if s < stamp]:
-            del self.pushers[old]
+        for pending in (self.keypoints, self.pushers):
+            for old in [s for s in pending if s < stamp]:
+                del pending[old]
         if not np.all(np.isfinite(observation)):
             self.get_logger().warning("observation with NaN/inf ignored")
-            return
-        self.controller.observe(step_of_stamp(stamp_msg, self.robot.control_hz), observation)
-        self.latest_stamp = stamp_msg
+            return None
+        return observation
 
     def _on_tick(self) -> None:
         """Realtime: exactly one setpoint per tick, never waiting on planning."""
@@ -299,7 +297,7 @@ class PolicyNode(Node):
         if self.controller is not None:
             stats = self.controller.stats
             values.update(plans=stats.plans_installed, plans_dropped=stats.plans_dropped,
-                          waypoints_skipped=stats.waypoints_skipped,
+                          waypoints_skipped=self.controller.queue.skipped,
                           held_ticks=stats.held_ticks, zone_reactions=stats.zone_reactions,
                           lead=self.controller.lead)
         status = DiagnosticStatus(level=DiagnosticStatus.OK, name="policy_node",

@@ -19,12 +19,14 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import torch
 
+from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.sampling.hooks import CommittedPrefix, prefix_weights
+from constrained_diffusion_ros.zones.area import RestrictedArea
+from constrained_diffusion_ros.zones.live import LiveZones
 
 
 class ActionQueue:
@@ -42,7 +44,6 @@ class ActionQueue:
         self.first_step = np.zeros(batch, dtype=np.int64)
         self.end = np.zeros(batch, dtype=np.int64)  # index after the last one to execute
         self.planned = np.zeros(batch, dtype=bool)
-        self.installed = 0  # plans installed since the reset
         self.skipped = 0  # waypoints skipped at install because their time had passed
 
     def install(self, rows: np.ndarray, waypoints: np.ndarray, first_step: np.ndarray | int,
@@ -60,7 +61,6 @@ class ActionQueue:
         self.planned[rows] = True
         skipped = np.clip(now - self.first_step[rows], 0, waypoints.shape[1])
         self.end[rows] = np.minimum(skipped + self.n_action_steps, waypoints.shape[1])
-        self.installed += len(rows)
         self.skipped += int(skipped.sum())
         return skipped
 
@@ -124,7 +124,7 @@ class PlanJob:
     generation: int
     step: int  # the control step of the newest observation in `observations`
     observations: torch.Tensor  # (1, n_obs_steps, obs_dim)
-    zones: Any  # RestrictedArea | None: the zones in force when asked
+    zones: RestrictedArea | None  # the zones in force when asked
     zone_version: int
     prefix: CommittedPrefix | None
 
@@ -210,7 +210,6 @@ class ControllerStats:
     plans_asked: int = 0
     plans_installed: int = 0
     plans_dropped: int = 0  # stale: another configuration or episode, or unsafe under new zones
-    waypoints_skipped: int = 0  # at install, their time had passed
     held_ticks: int = 0  # ticks with no waypoint to execute (the last setpoint held)
     zone_reactions: int = 0  # setpoints changed at once because a zone arrived
     last_plan_ms: float = float("nan")
@@ -229,7 +228,8 @@ class RealtimeController:
     `wake` is called from the worker when a plan is ready, to get `install_results` called.
     """
 
-    def __init__(self, planner: Any, zones: Any, rate_hz: float, lead: int | None = None,
+    def __init__(self, planner: ConstrainedPlanner, zones: LiveZones, rate_hz: float,
+                 lead: int | None = None,
                  soft: int = 4, noise_seed: int = 0,
                  wake: Callable[[], None] = lambda: None) -> None:
         config = planner.policy_config
@@ -268,7 +268,7 @@ class RealtimeController:
         self.planner.reset()
         self.worker.reseed(self.noise_seed)
 
-    def use_planner(self, planner: Any) -> None:
+    def use_planner(self, planner: ConstrainedPlanner) -> None:
         """Another configuration: plans in flight are dropped, a new one asked for; the chunk
         in force executes until it arrives."""
         self.planner = planner
@@ -344,9 +344,8 @@ class RealtimeController:
                     self.stats.plans_dropped += 1  # planned before the zones that it enters
                     self._ask(prefix=False)
                     continue
-            skipped = self.queue.install(np.array([0]), chunk, job.step, self.step)
+            self.queue.install(np.array([0]), chunk, job.step, self.step)
             self.stats.plans_installed += 1
-            self.stats.waypoints_skipped += int(skipped[0])
 
     def shutdown(self) -> None:
         self.worker.shutdown()
@@ -362,8 +361,7 @@ class RealtimeController:
         area = self.zones.area_at(self.step)
         latest = self.observations[self.step][None]
         setpoint = np.asarray(setpoint, float)[None]
-        if area is not None and hasattr(self.planner, "keep_out"):
-            setpoint = self.planner.keep_out(area, setpoint)
+        setpoint = self.planner.keep_out(area, setpoint)
         self.sent = self.planner.guard(area, latest, setpoint, self.step)[0]
         return self.sent
 

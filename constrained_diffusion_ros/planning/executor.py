@@ -133,7 +133,7 @@ class ChunkExecutor:
         if waiting.any() and self.held is None:  # nothing sent yet: hold the pusher where it is
             self.held = self.planner.robot.pusher(self.history.latest).astype(float)
         action = np.where(waiting[:, None], self.held, waypoint) if waiting.any() else waypoint
-        chunk = np.where(waiting, -1, self.queue_id)
+        chunk = np.where(waiting, -1, self.queue.installs)
         self.handed_over = (chunk != self.executed_id) & ~waiting
         self.executed_id = chunk
         # The guard sees the positions as the planner saw them (float32 observations).
@@ -144,22 +144,20 @@ class ChunkExecutor:
         batch = len(observations)
         self.history = ObservationHistory(observations, self.n_obs_steps)
         self.queue = ActionQueue(batch, self.n_action_steps)
-        self.queue_id = np.zeros(batch, dtype=np.int64)  # which plan the queue holds
-        self.executed_id = np.full(batch, -1)
+        self.executed_id = np.full(batch, -1)  # the chunk (install count) executed; -1: held
         self.held: np.ndarray | None = None  # the setpoints executed last
         self.planned_version = np.zeros(batch, dtype=np.int64)
         self.ready_at = np.full(batch, -1)  # step at which the pending plan is ready; -1: none
-        self.pending: np.ndarray | None = None  # (B, horizon - first_executed, 2)
+        horizon = self.planner.policy_config.horizon
+        self.pending = np.full((batch, horizon - self.first_executed, 2), np.nan)
         self.pending_first = np.zeros(batch, dtype=np.int64)
         self.pending_version = np.zeros(batch, dtype=np.int64)
-        self.plans_made = 0
 
     def _install_ready(self, step: int) -> None:
         rows = np.nonzero((self.ready_at >= 0) & (self.ready_at <= step))[0]
         if len(rows) == 0:
             return
         self.queue.install(rows, self.pending[rows], self.pending_first[rows], step)
-        self.queue_id[rows] = self.pending_id[rows]
         self.planned_version[rows] = self.pending_version[rows]
         self.ready_at[rows] = -1
 
@@ -188,21 +186,13 @@ class ChunkExecutor:
                                       self.first_executed)
         started = time.perf_counter()
         observations = self.history.tensor(rows)
-        plan = (self.planner.plan(observations, zones, rows, self.generator)
-                if prefix is None else
-                self.planner.plan(observations, zones, rows, self.generator, prefix)).numpy()
+        plan = self.planner.plan(observations, zones, rows, self.generator, prefix).numpy()
         seconds = time.perf_counter() - started
         self.stats.planning_s += seconds
         self.stats.planned_chunks += len(rows)
         self.stats.planner_calls += 1
         self.last_plan = PlanRecord(step, rows, plan, seconds)
-        if self.pending is None:
-            self.pending = np.full((len(self.ready_at), plan.shape[1] - self.first_executed, 2),
-                                   np.nan)
-            self.pending_id = np.zeros(len(self.ready_at), dtype=np.int64)
-        self.plans_made += 1
         self.pending[rows] = plan[:, self.first_executed:]
-        self.pending_id[rows] = self.plans_made
         self.pending_version[rows] = np.broadcast_to(version, self.ready_at.shape)[rows]
         self.ready_at[rows] = step + self.delay
         if self.handover == "sync":  # the robot waits for the plan, which starts when ready

@@ -44,6 +44,7 @@ class ActionQueue:
         self.first_step = np.zeros(batch, dtype=np.int64)
         self.end = np.zeros(batch, dtype=np.int64)  # index after the last one to execute
         self.planned = np.zeros(batch, dtype=bool)
+        self.installs = np.zeros(batch, dtype=np.int64)  # chunks installed per row: its id
         self.skipped = 0  # waypoints skipped at install because their time had passed
 
     def install(self, rows: np.ndarray, waypoints: np.ndarray, first_step: np.ndarray | int,
@@ -59,6 +60,7 @@ class ActionQueue:
         self.waypoints[rows] = waypoints
         self.first_step[rows] = first_step
         self.planned[rows] = True
+        self.installs[rows] += 1
         skipped = np.clip(now - self.first_step[rows], 0, waypoints.shape[1])
         self.end[rows] = np.minimum(skipped + self.n_action_steps, waypoints.shape[1])
         self.skipped += int(skipped.sum())

@@ -6,8 +6,8 @@ drives them from an rclpy client of its own (not zone_publisher). Per configurat
 condition it runs `--trials` trials, each on its own scene: reset, let the policy run, drop a
 square zone on the waypoints the plan in force is about to execute (placed so the pusher's disc
 is still outside it), watch, clear. It prints per condition:
-  - the setpoint period (arrival to arrival, windows without zone events) median, and its
-    jitter |period - 1/rate| p99;
+  - the setpoint period (windows without zone events) median, and its jitter |period - 1/rate|
+    p99, as sent (the policy's publish timestamps) and as received by the client;
   - the time from publishing a zone to the first moment the setpoint in force respects it
     (outside the zone grown by the pusher radius), over all trials and over the trials where
     the setpoint held when the zone came did not (the node had to react);
@@ -88,7 +88,8 @@ def build_parser() -> argparse.ArgumentParser:
 class Condition:
     """Everything measured in one condition (one configuration, idle or loaded)."""
 
-    periods: list[float] = field(default_factory=list)  # s
+    periods: list[float] = field(default_factory=list)  # s, as received by the client
+    sent_periods: list[float] = field(default_factory=list)  # s, as published by the policy
     latencies: list[float] = field(default_factory=list)  # s, every trial
     reacted: list[float] = field(default_factory=list)  # s, trials whose held setpoint was unsafe
     inside_after: int = 0
@@ -118,6 +119,7 @@ class Client:
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.setpoints: list[tuple[float, np.ndarray]] = []
+        self.published: list[float] = []  # s, the policy's own clock when it sent each setpoint
         self.pushers: list[tuple[float, int, np.ndarray]] = []
         self.plan: np.ndarray | None = None
         self.plan_time = 0.0
@@ -128,8 +130,7 @@ class Client:
             self.node.create_subscription(msg_type, TOPICS[key].name, callback,
                                           qos_profile(TOPICS[key]))
 
-        subscribe("setpoint", PointStamped,
-                  lambda m: self.setpoints.append((time.monotonic(), point_of(m))))
+        subscribe("setpoint", PointStamped, self._on_setpoint)
         subscribe("pusher", PointStamped, lambda m: self.pushers.append(
             (time.monotonic(), step_of_stamp(m.header.stamp, CONTROL_HZ), point_of(m))))
         subscribe("plan", PathMsg, self._on_plan)
@@ -150,6 +151,10 @@ class Client:
                 and all(s.get_publisher_count() >= 1 for s in node.subscriptions)
                 and self.zones.get_subscription_count() >= 1
                 and node.count_subscribers(TOPICS["pusher"].name) >= 2)
+
+    def _on_setpoint(self, msg, info: dict) -> None:
+        self.setpoints.append((time.monotonic(), point_of(msg)))
+        self.published.append(info["source_timestamp"] * 1e-9)
 
     def _on_plan(self, msg) -> None:
         self.plan, self.plan_time = path_of(msg), time.monotonic()
@@ -226,9 +231,13 @@ def respects(shape: shapely.Polygon, point: np.ndarray) -> bool:
         not shape.contains(shapely.Point(*point))
 
 
-def periods_between(arrivals: list[float], start: float, stop: float) -> list[float]:
-    times = [t for t in arrivals if start <= t <= stop]
-    return list(np.diff(times))
+def periods_between(client: Client, start: float, stop: float) -> tuple[list[float], list[float]]:
+    """Setpoint periods in a window of arrival times: as the client received them, and as the
+    policy sent them (the publisher's own timestamps, free of the client's scheduling)."""
+    chosen = [i for i, (t, _) in enumerate(client.setpoints) if start <= t <= stop]
+    received = [client.setpoints[i][0] for i in chosen]
+    sent = [client.published[i] for i in chosen]
+    return list(np.diff(received)), list(np.diff(sent))
 
 
 def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
@@ -267,9 +276,10 @@ def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
                                if first is not None and t > first)
     result.overlap_steps += sum(shape.distance(shapely.Point(*p)) < AGENT_RADIUS
                                 for _, _, p in client.pushers[n_pushers:])
-    arrivals = [t for t, _ in client.setpoints]
-    result.periods += periods_between(arrivals, begin + 0.5, published)
-    result.periods += periods_between(arrivals, published + 0.3, time.monotonic())
+    for start, stop in ((begin + 0.5, published), (published + 0.3, time.monotonic())):
+        received, sent = periods_between(client, start, stop)
+        result.periods += received
+        result.sent_periods += sent
     client.call(client.clear, client.Trigger.Request(), "clear zones")
 
 
@@ -281,7 +291,7 @@ def flood(client: Client, args: argparse.Namespace) -> None:
     client.spin_for(2.0)
     start = time.monotonic()
     client.spin_for(args.flood_seconds)
-    quiet = periods_between([t for t, _ in client.setpoints], start, time.monotonic())
+    quiet, quiet_sent = periods_between(client, start, time.monotonic())
     last: dict[int, np.ndarray] = {}
     sent, flood_start = 0, time.monotonic()
     period = 1.0 / args.flood_hz
@@ -295,7 +305,7 @@ def flood(client: Client, args: argparse.Namespace) -> None:
             sent += 1
         client.executor.spin_once(timeout_sec=0)
     ended = time.monotonic()
-    flooded = periods_between([t for t, _ in client.setpoints], flood_start, ended)
+    flooded, flooded_sent = periods_between(client, flood_start, ended)
     expected = shapely.union_all([shapely.Polygon(v) for v in last.values()])
 
     def caught_up() -> bool:  # the policy's markers show the union of the last messages
@@ -315,14 +325,14 @@ def flood(client: Client, args: argparse.Namespace) -> None:
           f"force = last message per id {caught}; policy counted {status.get('zone_messages')} "
           f"messages, {status.get('zones_refused')} refused, in {status.get('zone_batches')} "
           f"batches")
-    print(f"  setpoint period p99: {1000 * np.percentile(quiet, 99):.1f} ms without the flood, "
-          f"{1000 * np.percentile(flooded, 99):.1f} ms during it")
+    for what, before, during in (("sent", quiet_sent, flooded_sent),
+                                 ("received", quiet, flooded)):
+        print(f"  setpoint period p99 ({what}): {1000 * np.percentile(before, 99):.1f} ms "
+              f"without the flood, {1000 * np.percentile(during, 99):.1f} ms during it")
     client.call(client.clear, client.Trigger.Request(), "clear zones")
 
 
 def report(name: str, result: Condition, nominal: float) -> None:
-    periods = np.array(result.periods)
-    jitter = np.abs(periods - nominal)
     latency = np.array(result.latencies)
     reacted = np.array(result.reacted)
 
@@ -333,9 +343,12 @@ def report(name: str, result: Condition, nominal: float) -> None:
                 f"{1000 * np.percentile(values, 99):.1f}, max {1000 * np.max(values):.1f} ms")
 
     print(f"  {name}: {result.trials} trials ({result.skipped} skipped: no room for the zone)")
-    print(f"    setpoint period median {1000 * np.median(periods):.1f} ms over {len(periods)} "
-          f"periods; jitter p99 {1000 * np.percentile(jitter, 99):.1f} ms, max "
-          f"{1000 * np.max(jitter):.1f} ms")
+    for what, values in (("sent", result.sent_periods), ("received", result.periods)):
+        periods = np.array(values)
+        jitter = np.abs(periods - nominal)
+        print(f"    setpoint period ({what}) median {1000 * np.median(periods):.1f} ms over "
+              f"{len(periods)} periods; jitter p99 {1000 * np.percentile(jitter, 99):.1f} ms, "
+              f"max {1000 * np.max(jitter):.1f} ms")
     print(f"    zone published -> setpoint in force respects it: {ms(latency)}")
     print(f"    ... in the {len(reacted)} trials where the held setpoint did not: {ms(reacted)}")
     print(f"    setpoints inside a zone after that: {result.inside_after}; steps with the "

@@ -5,7 +5,9 @@ the same stamp) is answered with one setpoint from the chunk in force, planned i
 so a trial is deterministic and equals the in-process evaluation bit for bit. `realtime`: a
 control clock publishes one setpoint per tick (`rate_hz`) from the latest observation while a
 background thread plans the next chunk (`RealtimeController`); a zone that arrives is checked
-at once and a safe setpoint published before the next tick.
+at once and a safe setpoint published before the next tick. The clock is a thread of its own
+(`ControlClock`) that only sends the setpoint already computed, so no callback or computation
+delays it.
 
 Zones come in as id-keyed polygons, taken in batches as fast as they come and coalesced to the
 last message per id; a malformed one, or one over the caps, is refused with a warning while the
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import math
 import sys
+import threading
 import time
 
 import numpy as np
@@ -24,6 +27,7 @@ from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PointStamped, PolygonInstanceStamped, PolygonStamped
 from nav_msgs.msg import Path as PathMsg
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
@@ -32,7 +36,7 @@ from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.planning.config import load_configurations
 from constrained_diffusion_ros.planning.executor import ChunkExecutor
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
-from constrained_diffusion_ros.planning.realtime import RealtimeController
+from constrained_diffusion_ros.planning.realtime import ControlClock, RealtimeController
 from constrained_diffusion_ros.planning.robot import RobotModel
 from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
@@ -65,7 +69,7 @@ ROBOT_PARAMETERS = {  # robot.<name>: what the planner knows of the robot; defau
 }
 MODES = ("lockstep", "realtime")
 ZONE_BATCH_MAX = 10_000  # zone messages taken in one callback at most
-STATUS_PERIOD_S = 0.5  # realtime: status this often (zone markers: on the tick after a change)
+STATUS_PERIOD_S = 0.5  # realtime: status this often (zone markers: at most once per tick)
 
 
 class PolicyNode(Node):
@@ -95,8 +99,8 @@ class PolicyNode(Node):
         if not (math.isfinite(self.rate_hz) and self.rate_hz > 0) or threads < 1:
             raise ValueError("parameters rate_hz and torch_threads must be positive")
         torch.set_num_threads(threads)
-        if self.mode == "realtime":  # the clock thread waits at most 1 ms for the planner's GIL
-            sys.setswitchinterval(0.001)
+        if self.mode == "realtime":  # the clock thread waits at most 0.2 ms for another's GIL
+            sys.setswitchinterval(0.0002)
         self.robot = self._declare_robot()
         self.policy = load_policy(self.get_parameter("model").value)
         self.configurations = load_configurations(
@@ -120,12 +124,19 @@ class PolicyNode(Node):
         self.create_service(Trigger, SERVICES["clear_zones"].name, self._on_clear)
         self.create_timer(0.2, self._expire_zones)
         self._markers_due = False
+        self._held: PointStamped | None = None  # realtime: what the clock sends
+        self._send_lock = threading.Lock()  # a setpoint replaced is never sent after it
         if self.mode == "realtime":
             wake = self.create_guard_condition(self._on_plan_ready)
             self.controller = RealtimeController(
                 self.planner, self.zones, self.rate_hz, None if self.lead < 0 else self.lead,
                 self.soft, self.get_parameter("noise_seed").value, wake.trigger)
-            self.create_timer(1.0 / self.rate_hz, self._on_tick)
+            self.clock = ControlClock(self.rate_hz, self._on_tick)
+            if not self.clock.realtime:
+                self.get_logger().warning(
+                    "control clock without real-time priority (not allowed here: raise "
+                    "rtprio in /etc/security/limits.conf); ticks may be late on a busy machine")
+            self.create_timer(1.0 / self.rate_hz, self._on_markers_timer)
             self.create_timer(STATUS_PERIOD_S, self._on_status_timer)
 
         self.keypoints: dict[float, np.ndarray] = {}
@@ -142,6 +153,7 @@ class PolicyNode(Node):
 
     def destroy_node(self) -> None:
         if self.controller is not None:
+            self.clock.shutdown()
             self.controller.shutdown()
         super().destroy_node()
 
@@ -214,12 +226,12 @@ class PolicyNode(Node):
     def _maybe_act(self, stamp: float, stamp_msg) -> None:
         if stamp not in self.keypoints or stamp not in self.pushers:
             return
-        if self.controller is not None:  # realtime: kept for the next tick and the next plan
+        if self.controller is not None:  # realtime: the setpoint the clock sends from now on
             observation = self._take_observation(stamp)
             if observation is not None:
-                self.controller.observe(step_of_stamp(stamp_msg, self.robot.control_hz),
-                                        observation)
                 self.latest_stamp = stamp_msg
+                self._hold(self.controller.observe(
+                    step_of_stamp(stamp_msg, self.robot.control_hz), observation))
             return
         if stamp == self.last_stamp:
             # The simulator re-sends an observation until answered: the answer may have been
@@ -255,17 +267,36 @@ class PolicyNode(Node):
         return observation
 
     def _on_tick(self) -> None:
-        """Realtime: exactly one setpoint per tick, never waiting on planning."""
-        setpoint = self.controller.tick()
-        if setpoint is not None:
-            self._publish_setpoint(setpoint, self.latest_stamp)
-        if self._markers_due:  # viewers see zone changes once per tick, however many came
+        """Realtime, on the clock's thread: exactly one setpoint per tick, the one computed
+        last; nothing to wait on but the short lock around sending."""
+        with self._send_lock:
+            if self._held is None:
+                return
+            try:
+                self.setpoint_pub.publish(self._held)
+            except RCLError:  # shutting down: the context went away under the clock
+                if self.context.ok():
+                    raise
+
+    def _hold(self, setpoint: np.ndarray | None, send_now: bool = False) -> None:
+        """Realtime: `setpoint` is what the clock sends from now on (sent at once if asked)."""
+        if setpoint is None or self.latest_stamp is None:
+            return
+        message = point_message(setpoint, self.latest_stamp)
+        with self._send_lock:
+            self._held = message
+            if send_now:
+                self.setpoint_pub.publish(message)
+        self._count_violation(setpoint)
+
+    def _on_markers_timer(self) -> None:
+        if self._markers_due:  # viewers see zone changes at most once per tick
             self._markers_due = False
             self._publish_markers()
 
     def _on_plan_ready(self) -> None:
         before = self.controller.stats.plans_installed
-        self.controller.install_results()
+        self._hold(self.controller.install_results())
         if self.controller.stats.plans_installed != before:
             chunk = self.controller.queue.waypoints[0]
             self._after_plan(chunk)
@@ -278,6 +309,9 @@ class PolicyNode(Node):
         msg = point_message(setpoint, stamp_msg)
         self.setpoint_pub.publish(msg)
         self.last_setpoint = msg
+        self._count_violation(setpoint)
+
+    def _count_violation(self, setpoint: np.ndarray) -> None:
         if bool(self.zones.snapshot().contains(torch.tensor(setpoint[None]))[0]):
             self.violations += 1
 
@@ -298,8 +332,11 @@ class PolicyNode(Node):
             stats = self.controller.stats
             values.update(plans=stats.plans_installed, plans_dropped=stats.plans_dropped,
                           waypoints_skipped=self.controller.queue.skipped,
-                          held_ticks=stats.held_ticks, zone_reactions=stats.zone_reactions,
-                          lead=self.controller.lead)
+                          held_steps=stats.held_steps, zone_reactions=stats.zone_reactions,
+                          lead=self.controller.lead, ticks=self.clock.ticks,
+                          ticks_missed=self.clock.missed,
+                          tick_late_p99_ms=f"{1000 * self.clock.late_p99():.1f}",
+                          clock_realtime=self.clock.realtime)
         status = DiagnosticStatus(level=DiagnosticStatus.OK, name="policy_node",
                                   message="running", hardware_id="pusht")
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
@@ -359,9 +396,7 @@ class PolicyNode(Node):
             self._publish_markers()
             return
         self._markers_due = True
-        safe = self.controller.zones_changed()
-        if safe is not None and self.latest_stamp is not None:
-            self._publish_setpoint(safe, self.latest_stamp)
+        self.controller.zones_changed(lambda safe: self._hold(safe, send_now=True))
 
     def _expire_zones(self) -> None:
         if self.zones.expire(time.monotonic()):

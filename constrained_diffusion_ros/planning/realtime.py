@@ -6,8 +6,8 @@ A chunk planned from the observation of step t puts its executed waypoint j (chu
 waypoints whose time has passed are skipped (as LeRobot's asynchronous action queue merges
 chunks). While a plan is being made, the waypoints that will execute before it arrives are
 already decided; the next chunk is denoised with them held fixed (`committed_prefix`), so the
-handover does not jump. The policy node runs this with a `BackgroundPlanner` thread; the
-latency evaluation runs it in lockstep with a chosen delay.
+handover does not jump. The policy node runs this with a `BackgroundPlanner` thread and a
+`ControlClock` thread; the latency evaluation runs it in lockstep with a chosen delay.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ import logging
 import os
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -207,12 +208,71 @@ class BackgroundPlanner:
                     self._busy = False
 
 
+CLOCK_PRIORITY = 50  # SCHED_FIFO priority of the control clock where allowed (ros2_control's)
+LATENESS_WINDOW = 100  # ticks over which the clock's lateness is kept for diagnostics
+
+
+class ControlClock:
+    """A thread that calls `on_tick` every 1 / rate_hz seconds of the monotonic clock, on
+    absolute deadlines (no drift); a tick missed by more than a period is dropped, not made up
+    in a burst. Its own thread, not an executor's timer: nothing queued in an executor (a zone
+    batch, an observation, a plan being installed) can hold a tick back, and `on_tick` should
+    only send what is already computed. `shutdown()` stops and joins it.
+    """
+
+    def __init__(self, rate_hz: float, on_tick: Callable[[], None],
+                 priority: int = CLOCK_PRIORITY, name: str = "control_clock") -> None:
+        self.period, self._on_tick, self._priority = 1.0 / rate_hz, on_tick, priority
+        self.realtime = False  # whether the thread got the real-time priority it asked for
+        self._started = threading.Event()
+        self.ticks = 0
+        self.missed = 0  # ticks dropped because the thread woke more than a period late
+        self.lateness: deque[float] = deque(maxlen=LATENESS_WINDOW)  # s, the latest ticks'
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+        self._started.wait(5.0)
+
+    def late_p99(self) -> float:
+        """s: how late the latest ticks woke, 99th percentile (nan before the first)."""
+        latest = list(self.lateness)  # one C-level copy: the clock thread may be appending
+        return float(np.percentile(latest, 99)) if latest else float("nan")
+
+    def shutdown(self, timeout: float = 5.0) -> None:
+        self._stop.set()
+        self._thread.join(timeout)
+
+    def _run(self) -> None:
+        if self._priority > 0 and hasattr(os, "sched_setscheduler"):
+            # As ros2_control's controller manager: FIFO scheduling if the system allows it
+            # (root, CAP_SYS_NICE or an rtprio limit), so the tick preempts other work at once.
+            with contextlib.suppress(OSError):
+                os.sched_setscheduler(threading.get_native_id(), os.SCHED_FIFO,
+                                      os.sched_param(self._priority))
+                self.realtime = True
+        self._started.set()
+        deadline = time.monotonic() + self.period
+        while not self._stop.wait(max(0.0, deadline - time.monotonic())):
+            late = time.monotonic() - deadline
+            self.lateness.append(late)
+            if late > self.period:
+                skipped = int(late // self.period)
+                self.missed += skipped
+                deadline += skipped * self.period
+            try:
+                self._on_tick()
+            except Exception:  # a failed send must not stop the clock
+                logging.getLogger(__name__).exception("control tick failed")
+            self.ticks += 1
+            deadline += self.period
+
+
 @dataclass
 class ControllerStats:
     plans_asked: int = 0
     plans_installed: int = 0
     plans_dropped: int = 0  # stale: another configuration or episode, or unsafe under new zones
-    held_ticks: int = 0  # ticks with no waypoint to execute (the last setpoint held)
+    held_steps: int = 0  # steps with no waypoint to execute (the last setpoint held)
     zone_reactions: int = 0  # setpoints changed at once because a zone arrived
     last_plan_ms: float = float("nan")
 
@@ -224,10 +284,12 @@ class RealtimeController:
     A `BackgroundPlanner` plans from the latest observations `lead` steps before the chunk in
     force runs out (or at once when new zones put the rest of it where the planner keeps
     waypoints out of); its chunk is installed as soon as it arrives with the steps that passed
-    skipped, and denoised with the committed waypoints inpainted. Every setpoint, on each tick
-    and at once when zones change, passes the planner's guard (the shield) against the zones in
-    force at that instant. Call everything but `shutdown` from one thread (the node's executor);
-    `wake` is called from the worker when a plan is ready, to get `install_results` called.
+    skipped, and denoised with the committed waypoints inpainted. The setpoint is computed
+    whenever what it depends on changes (an observation, a plan installed, zones changed) and
+    passes the planner's guard (the shield) against the zones in force then; `tick` only reads
+    it, so a clock on its own thread sends it on time however long the computing takes. Call
+    everything else from one thread (the node's executor); `wake` is called from the worker
+    when a plan is ready, to get `install_results` called.
     """
 
     def __init__(self, planner: ConstrainedPlanner, zones: LiveZones, rate_hz: float,
@@ -243,7 +305,8 @@ class RealtimeController:
         self.generation = 0
         self.observations: dict[int, np.ndarray] = {}
         self.step: int | None = None  # the newest observation's control step
-        self.sent: np.ndarray | None = None  # (2,) the setpoint sent last
+        self.sent: np.ndarray | None = None  # (2,) the setpoint shielded last
+        self.setpoint: np.ndarray | None = None  # (2,) what `tick` sends; replaced, never changed
         self.plan_seconds = 0.0  # running estimate of one planning call
         self.stats = ControllerStats()
         self._results: list[PlanResult] = []
@@ -252,21 +315,24 @@ class RealtimeController:
 
     # -- inputs ---------------------------------------------------------------------------
 
-    def observe(self, step: int, observation: np.ndarray) -> None:
+    def observe(self, step: int, observation: np.ndarray) -> np.ndarray:
         """The observation (obs_dim,) of control step `step`; an earlier step than the newest
-        starts a new episode."""
+        starts a new episode. Returns the setpoint for this step (also held for `tick`)."""
         if self.step is not None and step < self.step:
             self.new_episode()
         self.observations[step] = np.asarray(observation, dtype=np.float32)
         for old in [s for s in self.observations if s <= step - self.n_obs_steps]:
             del self.observations[old]
         self.step = step
+        if np.isnan(self.queue.at(step)[0]).any():
+            self.stats.held_steps += 1
+        return self._update()
 
     def new_episode(self) -> None:
         self.generation += 1
         self.queue.clear()
         self.observations.clear()
-        self.step, self.sent = None, None
+        self.step, self.sent, self.setpoint = None, None, None
         self.planner.reset()
         self.worker.reseed(self.noise_seed)
 
@@ -293,43 +359,40 @@ class RealtimeController:
     # -- outputs --------------------------------------------------------------------------
 
     def tick(self) -> np.ndarray | None:
-        """The setpoint (2,) for this tick, or None before the first observation."""
-        self.install_results()
-        if self.step is None:
-            return None
-        step = self.step
-        waypoint = self.queue.at(step)[0]
-        if np.isnan(waypoint).any():
-            self.stats.held_ticks += 1
-            waypoint = self.sent if self.sent is not None else self._pusher()
-        if not self.worker.busy and self.queue.remaining(step)[0] <= self.lead:
-            self._ask(prefix=True)
-        return self._guarded(waypoint)
+        """The setpoint (2,) to send on this tick, or None before the first observation.
 
-    def zones_changed(self) -> np.ndarray | None:
-        """Zones changed: replan at once if the rest of the chunk is now where the planner keeps
-        waypoints out of, and return a safe setpoint to publish now if the one held is not."""
+        Only reads: the setpoint was computed (and shielded) when its inputs last changed, so
+        a clock on another thread can send it without waiting for any computation."""
+        return self.setpoint
+
+    def zones_changed(self, send: Callable[[np.ndarray], None] = lambda _: None
+                      ) -> np.ndarray | None:
+        """Zones changed: the held setpoint is shielded again and, if that changed it, the safe
+        one returned and given to `send` at once, before anything else; then a replan is asked
+        for if the rest of the chunk is where the planner keeps waypoints out of."""
         if self.step is None:
             return None
+        before = self.setpoint
+        after = self._update()
+        changed = before is not None and not np.array_equal(after, before)
+        if changed:
+            self.stats.zone_reactions += 1
+            send(after)
         area = self.zones.area_at(self.step)
         remaining = int(self.queue.remaining(self.step)[0])
         if area is not None and remaining > 0:
             rest = self.queue.upcoming(np.array([0]), self.step, remaining)
             if self.planner.violates(torch.from_numpy(rest), area, np.array([0])).any():
                 self._ask(prefix=False)
-        if self.sent is None:
-            return None
-        before = self.sent.copy()
-        after = self._guarded(before)
-        if np.array_equal(after, before):
-            return None
-        self.stats.zone_reactions += 1
-        return after
+        return after if changed else None
 
-    def install_results(self) -> None:
-        """Install the plans that arrived (on the caller's thread)."""
+    def install_results(self) -> np.ndarray | None:
+        """Install the plans that arrived (on the caller's thread); the new setpoint to hold, or
+        None if nothing arrived."""
         with self._results_lock:
             results, self._results = self._results, []
+        if not results:
+            return None
         for result in results:
             job = result.job
             self.plan_seconds = (result.seconds if self.plan_seconds == 0.0
@@ -348,6 +411,7 @@ class RealtimeController:
                     continue
             self.queue.install(np.array([0]), chunk, job.step, self.step)
             self.stats.plans_installed += 1
+        return self._update() if self.step is not None else None
 
     def shutdown(self) -> None:
         self.worker.shutdown()
@@ -356,6 +420,18 @@ class RealtimeController:
 
     def _pusher(self) -> np.ndarray:
         return self.planner.robot.pusher(self.observations[self.step]).astype(float)
+
+    def _update(self) -> np.ndarray:
+        """The setpoint of the newest step from the chunk in force (the one held when it has
+        none), through the guard; asks for the next plan when the chunk is running out."""
+        step = self.step
+        waypoint = self.queue.at(step)[0]
+        if np.isnan(waypoint).any():
+            waypoint = self.sent if self.sent is not None else self._pusher()
+        if not self.worker.busy and self.queue.remaining(step)[0] <= self.lead:
+            self._ask(prefix=True)
+        self.setpoint = self._guarded(waypoint)
+        return self.setpoint
 
     def _guarded(self, setpoint: np.ndarray) -> np.ndarray:
         """The zones in force now decide: a waypoint planned before them is moved out of them

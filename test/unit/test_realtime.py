@@ -17,6 +17,7 @@ from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.planning.realtime import (
     ActionQueue,
     BackgroundPlanner,
+    ControlClock,
     PlanJob,
     RealtimeController,
     committed_prefix,
@@ -252,3 +253,45 @@ def test_a_new_configuration_drops_the_plan_in_flight(tiny_policy: DiffusionPoli
         assert (stats.plans_asked, stats.plans_dropped, stats.plans_installed) == (2, 1, 1)
     finally:
         controller.shutdown()
+
+
+def test_the_control_clock_ticks_on_its_own_thread_and_outlives_a_failing_tick() -> None:
+    threads: list[int] = []
+    three = threading.Event()
+
+    def on_tick() -> None:
+        threads.append(threading.get_ident())
+        if len(threads) == 1:
+            raise RuntimeError("a send that failed")
+        if len(threads) == 3:
+            three.set()
+
+    clock = ControlClock(200.0, on_tick)
+    try:
+        assert three.wait(5)
+    finally:
+        clock.shutdown()
+    assert threading.get_ident() not in threads and len(set(threads)) == 1
+
+
+def test_a_clock_held_up_drops_the_ticks_it_missed_instead_of_bursting() -> None:
+    """At 100 Hz a tick that takes 0.3 s misses about 30 deadlines; they are counted and
+    dropped, so the clock resumes one tick per period instead of firing 30 at once."""
+    count = 0
+    resumed = threading.Event()
+
+    def on_tick() -> None:
+        nonlocal count
+        count += 1
+        if count == 1:
+            threading.Event().wait(0.3)
+        elif count == 2:
+            resumed.set()
+
+    clock = ControlClock(100.0, on_tick)
+    try:
+        assert resumed.wait(5)
+        missed = clock.missed
+    finally:
+        clock.shutdown()
+    assert missed >= 20

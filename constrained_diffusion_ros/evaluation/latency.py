@@ -76,9 +76,9 @@ def run(args: argparse.Namespace) -> int:
     seeds = list(range(100000, 100000 + args.episodes))
     runs = [(c, d, h) for c in args.configs for d in args.delays
             for h in (HANDOVERS if d > 0 else HANDOVERS[:1])]
-    rows = []
     output = Path(args.output)
     output.mkdir(parents=True, exist_ok=True)
+    rows = kept_rows(output / "latency.json", args.configs)
     for name, delay, handover in tqdm(runs, desc="latency", unit="run"):
         _, log, first_rows = evaluate_configurations(
             policy, [known_configs[name]], [scenarios], seeds, args.steps, progress=False,
@@ -97,6 +97,20 @@ def run(args: argparse.Namespace) -> int:
         (output / "latency.md").write_text(markdown(rows, args))
     print(markdown(rows, args))
     return 0
+
+
+def kept_rows(path: Path, configs: list[str]) -> list[dict]:
+    """The rows of other configurations already in `path`: a run for one configuration adds
+    its rows to the report instead of replacing the others'."""
+    if not path.exists():
+        return []
+    try:
+        rows = json.loads(path.read_text())
+    except ValueError as error:
+        raise ValueError(f"{path} is not a latency report ({error}); move it away") from None
+    if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
+        raise ValueError(f"{path} is not a latency report; move it away")
+    return [row for row in rows if row.get("configuration") not in configs]
 
 
 def markdown(rows: list[dict], args: argparse.Namespace) -> str:

@@ -26,6 +26,7 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (SHARE, ["package.xml"]),
         (f"{SHARE}/config", files("config/*.yaml")),
+        (f"{SHARE}/launch", files("launch/*.xml")),
         *model_dirs(),
     ],
     install_requires=["setuptools"],

@@ -1,8 +1,11 @@
 """Every topic and service: name, message type, QoS, frame and units.
 
-The nodes, the recorder, the trial launcher and the README's diagram all read names from here;
-no topic string is written anywhere else. Plain data (no rclpy import), so the contract can be
-read, tested and documented without ROS; `qos_profile` builds the rclpy QoS when needed.
+Names are relative, as ROS expects: each node resolves them in its namespace, `pusht` unless
+started with another (`--ros-args -r __ns:=/robot1`), and remaps them by their plain name
+(`-r zones:=/obstacles`). The nodes, the recorder, the trial launcher and the README's diagram
+all read names from here; no topic string is written anywhere else. Plain data (no rclpy
+import), so the contract can be read, tested and documented without ROS; `qos_profile` builds
+the rclpy QoS when needed.
 """
 
 from __future__ import annotations
@@ -10,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 FRAME_ID = "workspace"  # PushT workspace: 512 x 512 px, origin top-left, y down (as the image)
+NAMESPACE = "pusht"  # every node's namespace unless `__ns` says otherwise
 
 
 @dataclass(frozen=True)
@@ -24,40 +28,45 @@ class Endpoint:
 
     @property
     def key(self) -> str:
-        """How code refers to it: `TOPICS["setpoint"].name` is "/pusht/setpoint"."""
-        return self.name.rsplit("/", 1)[-1]
+        """How code refers to it: `TOPICS["setpoint"].name` is "setpoint"."""
+        return self.name
+
+    def resolved(self, namespace: str = NAMESPACE) -> str:
+        """The full name in `namespace`: "/pusht/setpoint" by default."""
+        prefix = namespace.strip("/")
+        return f"/{prefix}/{self.name}" if prefix else f"/{self.name}"
 
 
 TOPICS: dict[str, Endpoint] = {e.key: e for e in (
-    Endpoint("/pusht/pusher", "geometry_msgs/msg/PointStamped", "sensor", "sim_node",
+    Endpoint("pusher", "geometry_msgs/msg/PointStamped", "sensor", "sim_node",
              ("policy_node", "recorder"), "px, frame workspace; stamp = simulated time",
              "Pusher position after each control step"),
-    Endpoint("/pusht/keypoints", "geometry_msgs/msg/PolygonStamped", "sensor", "sim_node",
-             ("policy_node", "recorder"), "px, frame workspace; same stamp as /pusht/pusher",
+    Endpoint("keypoints", "geometry_msgs/msg/PolygonStamped", "sensor", "sim_node",
+             ("policy_node", "recorder"), "px, frame workspace; same stamp as pusher",
              "The 9 T-block keypoints (dataset order) after each control step"),
-    Endpoint("/pusht/block_pose", "geometry_msgs/msg/PoseStamped", "sensor", "sim_node",
+    Endpoint("block_pose", "geometry_msgs/msg/PoseStamped", "sensor", "sim_node",
              ("recorder",), "px and rad about z, frame workspace", "T block pose"),
-    Endpoint("/pusht/score", "std_msgs/msg/Float64", "sensor", "sim_node", ("recorder",),
+    Endpoint("score", "std_msgs/msg/Float64", "sensor", "sim_node", ("recorder",),
              "score in [0, 1] = clip(coverage / 0.95)", "Goal coverage score after each step"),
-    Endpoint("/pusht/setpoint", "geometry_msgs/msg/PointStamped", "sensor", "policy_node",
+    Endpoint("setpoint", "geometry_msgs/msg/PointStamped", "sensor", "policy_node",
              ("sim_node", "recorder"), "px, frame workspace; stamp = the observation's",
              "Commanded pusher target, one per control step"),
-    Endpoint("/pusht/plan", "nav_msgs/msg/Path", "sensor", "policy_node", ("recorder",),
+    Endpoint("plan", "nav_msgs/msg/Path", "sensor", "policy_node", ("recorder",),
              "px, frame workspace", "The planned action chunk (16 waypoints)"),
-    Endpoint("/pusht/zones", "geometry_msgs/msg/PolygonInstanceStamped", "latched",
+    Endpoint("zones", "geometry_msgs/msg/PolygonInstanceStamped", "latched",
              "zone_publisher", ("policy_node", "recorder"), "px, frame workspace",
              "Restricted zones keyed by id: add or replace; an empty polygon removes the id"),
-    Endpoint("/pusht/zone_markers", "visualization_msgs/msg/MarkerArray", "latched",
+    Endpoint("zone_markers", "visualization_msgs/msg/MarkerArray", "latched",
              "policy_node", ("recorder",), "px, frame workspace", "Active zones for viewers"),
-    Endpoint("/pusht/policy_status", "diagnostic_msgs/msg/DiagnosticStatus", "sensor",
+    Endpoint("policy_status", "diagnostic_msgs/msg/DiagnosticStatus", "sensor",
              "policy_node", ("recorder",), "key/value strings",
              "Violations, replans, planning latency (ms), zones in force"),
 )}
 
 SERVICES: dict[str, Endpoint] = {e.key: e for e in (
-    Endpoint("/pusht/clear_zones", "std_srvs/srv/Trigger", "services", "policy_node", (), "",
+    Endpoint("clear_zones", "std_srvs/srv/Trigger", "services", "policy_node", (), "",
              "Remove every zone in force"),
-    Endpoint("/pusht/reset", "std_srvs/srv/Trigger", "services", "sim_node", (), "",
+    Endpoint("reset", "std_srvs/srv/Trigger", "services", "sim_node", (), "",
              "Reset the scene to the sim node's `seed` parameter (set it first)"),
 )}
 

@@ -4,7 +4,8 @@ Part of the ROS interface layer so that the simulator node and the policy-side n
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import sys
+from collections.abc import Callable, Sequence
 
 import rclpy
 from rclpy._rclpy_pybind11 import RCLError
@@ -13,11 +14,28 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.logging import get_logger
 from rclpy.node import Node
 
+from msg_schemas.parameters import Param, usage
+
+
+def answered_help(args: list[str] | None, name: str, summary: str,
+                  parameters: Sequence[Param]) -> bool:
+    """Prints the node's usage if `-h` or `--help` comes before `--ros-args`."""
+    argv = sys.argv[1:] if args is None else list(args)
+    own = argv[:argv.index("--ros-args")] if "--ros-args" in argv else argv
+    if "-h" in own or "--help" in own:
+        print(usage(name, summary, parameters))
+        return True
+    return False
+
 
 def spin_node(factory: Callable[[], Node], name: str, args: list[str] | None = None,
+              parameters: Sequence[Param] = (), summary: str = "",
               startup_errors: tuple[type[BaseException], ...] = ()) -> int:
-    """Runs a node until Ctrl-C or shutdown. A bad parameter or file at start-up is logged in
-    one line (exit code 1), never a traceback."""
+    """Runs a node until Ctrl-C or shutdown. `-h`/`--help` (before `--ros-args`) prints its
+    parameters and topics and exits. A bad parameter or file at start-up is logged in one line
+    (exit code 1), never a traceback."""
+    if answered_help(args, name, summary, parameters):
+        return 0
     rclpy.init(args=args)
     try:
         node = factory()

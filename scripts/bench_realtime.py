@@ -3,9 +3,10 @@ pusher's path, a zone flood, and the README's trial, on an idle and on a loaded 
 
 Starts sim_node and policy_node (both `mode:=realtime`) as processes in a random ROS domain, and
 drives them from an rclpy client of its own (not zone_publisher). Per configuration and
-condition it runs `--trials` trials, each on its own scene: reset, let the policy run, drop a
-square zone on the waypoints the plan in force is about to execute (placed so the pusher's disc
-is still outside it), watch, clear. It prints per condition:
+condition it runs `--trials` trials, each on its own scene (seeds from 100000; a scene with no
+room for a zone the pusher could still stop before is skipped and the next tried): reset, let
+the policy run, drop a square zone on the waypoints the plan in force is about to execute
+(placed so the pusher's disc is still outside it), watch, clear. It prints per condition:
   - the setpoint period (windows without zone events) median, and its jitter |period - 1/rate|
     p99, as sent (the policy's publish timestamps) and as received by the client;
   - the time from publishing a zone to the first moment the setpoint in force respects it
@@ -43,7 +44,7 @@ from constrained_diffusion_ros.evaluation.launcher import (  # noqa: E402
     random_domain_id,
 )
 from constrained_diffusion_ros.paths import default_model_dir  # noqa: E402
-from msg_schemas import SERVICES, TOPICS, qos_profile  # noqa: E402
+from msg_schemas import NAMESPACE, SERVICES, TOPICS, qos_profile  # noqa: E402
 from msg_schemas.conversions import (  # noqa: E402
     path_of,
     point_of,
@@ -53,6 +54,7 @@ from msg_schemas.conversions import (  # noqa: E402
 from sim_bridge import AGENT_RADIUS, CONTROL_HZ  # noqa: E402
 
 FIRST_SEED = 100000
+MAX_ATTEMPTS = 4  # scenes tried per trial asked for, at most
 FLOOD_IDS = 40  # ids cycled by the flood (the node's cap is 64)
 TOLERANCE = 0.5  # px: a setpoint this close to the grown zone's boundary respects it
 
@@ -64,7 +66,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--configurations", nargs="+",
                         default=["ddim10_r_g10_p_safe", "r_g10_p_safe"],
                         help="constraint configurations to run (r_g10_p_safe: DDPM, 100 steps)")
-    parser.add_argument("--trials", type=int, default=20, help="trials per condition")
+    parser.add_argument("--trials", type=int, default=20,
+                        help="trials (with a zone dropped) per condition")
     parser.add_argument("--conditions", nargs="+", default=["idle", "loaded"],
                         choices=["idle", "loaded"], help="machine conditions to run")
     parser.add_argument("--load", type=int, default=1,
@@ -115,7 +118,7 @@ class Client:
         self.children = children
         self.context = Context()
         rclpy.init(context=self.context, domain_id=domain_id)
-        self.node = rclpy.create_node("bench_realtime", context=self.context)
+        self.node = rclpy.create_node("bench_realtime", namespace=NAMESPACE, context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.setpoints: list[tuple[float, np.ndarray]] = []
@@ -142,7 +145,7 @@ class Client:
         self.reset = self.node.create_client(Trigger, SERVICES["reset"].name)
         self.clear = self.node.create_client(Trigger, SERVICES["clear_zones"].name)
         self.sim_parameters = self.node.create_client(SetParameters,
-                                                      "/sim_node/set_parameters")
+                                                      "sim_node/set_parameters")
         self.Trigger, self.SetParameters = Trigger, SetParameters
 
     def discovered(self) -> bool:
@@ -376,8 +379,10 @@ def run_condition(args: argparse.Namespace, loaded: bool) -> None:
                 client.spin_until(client.discovered, args.startup_timeout,
                                   "the nodes to discover each other")
                 result = Condition()
-                for trial in range(args.trials):
-                    run_trial(client, trial, FIRST_SEED + trial, args, result)
+                attempt = 0  # scenes without room for a zone are skipped; the next seed is tried
+                while result.trials < args.trials and attempt < MAX_ATTEMPTS * args.trials:
+                    run_trial(client, attempt, FIRST_SEED + attempt, args, result)
+                    attempt += 1
                     print(".", end="", flush=True)
                 print()
                 report(configuration, result, 1.0 / args.rate_hz)

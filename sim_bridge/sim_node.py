@@ -7,7 +7,7 @@ steps at `rate_hz` with the latest setpoint, as a real robot would, holding the 
 
 Every observation is stamped with simulated time (control step * 0.1 s) and published as four
 messages with the same stamp: block pose, score, keypoints, then the pusher, last, because the
-policy node acts on it. A reset (service `/pusht/reset`, to the `seed` parameter) returns the
+policy node acts on it. A reset (service `reset`, to the `seed` parameter) returns the
 stamp to 0. With `autostart` false the sim publishes nothing and ignores setpoints until the
 first reset, so a trial can wait until every node is up before the scene starts.
 
@@ -29,7 +29,7 @@ from rclpy.node import Node
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
-from msg_schemas import FRAME_ID, SERVICES, TOPICS, qos_profile
+from msg_schemas import FRAME_ID, NAMESPACE, SERVICES, TOPICS, qos_profile
 from msg_schemas.conversions import (
     point_message,
     polygon_message,
@@ -37,6 +37,7 @@ from msg_schemas.conversions import (
     stamp_nanoseconds,
     stamp_of_step,
 )
+from msg_schemas.parameters import Param, declare
 from msg_schemas.spin import spin_node
 from sim_bridge.physics import PushTSim
 from sim_bridge.scene import CONTROL_HZ, COORD_LIMITS
@@ -61,23 +62,27 @@ def setpoint_fault(msg: PointStamped) -> str | None:
     return None
 
 
+PARAMETERS = (
+    Param("seed", 100000, "scene of the reference environment; the reset service re-reads it",
+          low=0),
+    Param("mode", "lockstep", "lockstep: one control step per setpoint (deterministic); "
+          "realtime: steps at rate_hz with the latest setpoint", read_only=True, choices=MODES),
+    Param("rate_hz", 10.0, "realtime: control steps per second", read_only=True, low=0.1,
+          high=1000.0),
+    Param("max_steps", 0, "stop stepping after this many control steps; 0: unlimited",
+          read_only=True, low=0),
+    Param("autostart", True, "false: publish nothing and ignore setpoints until the reset "
+          "service is called", read_only=True),
+)
+
+
 class SimNode(Node):
     """Publishes the PushT scene and steps it on setpoints (lockstep) or on a timer (realtime)."""
 
     def __init__(self) -> None:
-        super().__init__("sim_node")
-        self.declare_parameter("seed", 100000)
-        self.declare_parameter("mode", "lockstep")
-        self.declare_parameter("rate_hz", 10.0)
-        self.declare_parameter("max_steps", 0)
-        self.declare_parameter("autostart", True)
-        self.mode = self.get_parameter("mode").value
-        if self.mode not in MODES:
-            raise ValueError(f"parameter mode must be one of {MODES}, got {self.mode!r}")
-        rate_hz = float(self.get_parameter("rate_hz").value)
-        if not (math.isfinite(rate_hz) and rate_hz > 0):
-            raise ValueError(f"parameter rate_hz must be positive, got {rate_hz}")
-        self.max_steps = int(self.get_parameter("max_steps").value)
+        super().__init__("sim_node", namespace=NAMESPACE)
+        values = declare(self, PARAMETERS)
+        self.mode, rate_hz, self.max_steps = values["mode"], values["rate_hz"], values["max_steps"]
 
         self.sim = PushTSim()
         self.step_count = 0
@@ -104,7 +109,7 @@ class SimNode(Node):
             self.create_timer(REPUBLISH_PERIOD_S / 5, self.on_idle)
 
         seed = self.get_parameter("seed").value
-        if self.get_parameter("autostart").value:
+        if values["autostart"]:
             self.reset(seed)  # a bad seed raises: main reports it
             self.get_logger().info(f"{self.mode} PushT sim running, seed {seed}")
         else:
@@ -191,7 +196,7 @@ class SimNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    return spin_node(SimNode, "sim_node", args)
+    return spin_node(SimNode, "sim_node", args, PARAMETERS, __doc__)
 
 
 if __name__ == "__main__":

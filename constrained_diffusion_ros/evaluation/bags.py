@@ -8,7 +8,7 @@ from pathlib import Path
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
-from msg_schemas import TOPICS
+from msg_schemas import TOPICS, Endpoint
 from msg_schemas.conversions import step_of_stamp
 from sim_bridge import CONTROL_HZ
 
@@ -27,12 +27,24 @@ def read_messages(bag: str | Path) -> dict[str, list]:
     return dict(messages)
 
 
+def messages_of(messages: dict[str, list], endpoint: Endpoint) -> list:
+    """The messages of a contract topic in a bag recorded in any namespace: the default one's
+    if present, else the only topic of that name; a bag of several robots has to be asked by
+    full name."""
+    if endpoint.resolved() in messages:
+        return messages[endpoint.resolved()]
+    found = [topic for topic in messages if topic.rsplit("/", 1)[-1] == endpoint.name]
+    if len(found) > 1:
+        raise ValueError(f"the bag has {endpoint.name!r} in several namespaces: {found}")
+    return messages[found[0]] if found else []
+
+
 def read_trial(bag: str | Path) -> dict[str, dict[int, object]]:
     """Pusher, block pose and setpoint messages keyed by control step (from header stamps)."""
     messages = read_messages(bag)
     trial: dict[str, dict[int, object]] = {}
     for kind, topic in TRIAL_TOPICS.items():
         trial[kind] = {}
-        for msg in messages.get(TOPICS[topic].name, []):
+        for msg in messages_of(messages, TOPICS[topic]):
             trial[kind][step_of_stamp(msg.header.stamp, CONTROL_HZ)] = msg
     return trial

@@ -22,7 +22,7 @@ from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_
 from constrained_diffusion_ros.evaluation.rollout import RolloutLog
 from constrained_diffusion_ros.evaluation.scenarios import Scenario, load_scenarios
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
-from msg_schemas import SERVICES, TOPICS
+from msg_schemas import NAMESPACE, SERVICES, TOPICS
 from msg_schemas.conversions import point_of, pose2d_of, step_of_stamp, zones_shown
 from sim_bridge import CONTROL_HZ
 
@@ -83,7 +83,7 @@ def run_trial(args: argparse.Namespace) -> dict:
     domain_id = random_domain_id() if args.domain_id is None else args.domain_id
     context = Context()
     rclpy.init(context=context, domain_id=domain_id)
-    node = rclpy.create_node("trial", context=context)
+    node = rclpy.create_node("trial", namespace=NAMESPACE, context=context)
     received: dict[str, dict[int, object]] = {"pusher": {}, "block": {}, "setpoint": {}}
 
     def keep(kind: str):

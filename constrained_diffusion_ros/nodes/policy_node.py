@@ -16,7 +16,6 @@ zones in force stay in force. Counters of both are in `policy_status`.
 
 from __future__ import annotations
 
-import math
 import sys
 import threading
 import time
@@ -26,7 +25,7 @@ import torch
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PointStamped, PolygonInstanceStamped, PolygonStamped
 from nav_msgs.msg import Path as PathMsg
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import SetParametersResult
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.node import Node
 from std_srvs.srv import Trigger
@@ -46,7 +45,7 @@ from constrained_diffusion_ros.zones.live import (
     BatchOutcome,
     LiveZones,
 )
-from msg_schemas import FRAME_ID, SERVICES, TOPICS, qos_profile
+from msg_schemas import FRAME_ID, NAMESPACE, SERVICES, TOPICS, qos_profile
 from msg_schemas.conversions import (
     path_message,
     point_message,
@@ -56,61 +55,79 @@ from msg_schemas.conversions import (
     step_of_stamp,
     zone_markers,
 )
+from msg_schemas.parameters import Param, declare
 from msg_schemas.spin import spin_node
 from sim_bridge.scene import observation as pusht_observation
 
-ROBOT_PARAMETERS = {  # robot.<name>: what the planner knows of the robot; defaults: PushT
-    "pusher_radius": "px; zones grown by it keep the pusher's body out",
-    "workspace": "px: x_min, y_min, x_max, y_max; outside counts as restricted",
-    "kp": "PD gain on position (1/s^2)",
-    "kv": "PD gain on velocity (1/s)",
-    "control_hz": "setpoints per second; stamps are control steps at this rate",
-    "physics_hz": "PD integration rate the shield predicts the pusher with",
-}
 MODES = ("lockstep", "realtime")
+ROBOT_FIELDS = ("pusher_radius", "kp", "kv", "control_hz", "physics_hz")  # and workspace
 ZONE_BATCH_MAX = 10_000  # zone messages taken in one callback at most
 STATUS_PERIOD_S = 0.5  # realtime: status this often (zone markers: at most once per tick)
+
+PARAMETERS = (
+    Param("model", str(default_model_dir()), "policy directory (config.json + "
+          "model.safetensors)", read_only=True),
+    Param("configuration", "r_g10_p_safe", "constraint configuration, a name from the "
+          "configurations file; settable at run time"),
+    Param("configurations_file", str(config_dir() / "configurations.yaml"),
+          "constraint configurations YAML", read_only=True),
+    Param("noise_seed", 0, "seed of the denoising noise (deterministic trials)", read_only=True,
+          low=0),
+    Param("zone_lifetime", 0.0, "s; a zone not re-published within it expires; 0: never",
+          low=0.0),
+    Param("mode", "lockstep", "lockstep: one setpoint per observation, planned in the "
+          "callback; realtime: one per tick of rate_hz, planned in the background",
+          read_only=True, choices=MODES),
+    Param("rate_hz", 10.0, "realtime: setpoints per second", read_only=True, low=0.1,
+          high=1000.0),
+    Param("lead", -1, "realtime: steps before the chunk runs out at which the next plan "
+          "starts; -1: from the measured planning time", read_only=True, low=-1),
+    Param("prefix_soft", 4, "realtime: waypoints after the committed ones drawn toward the "
+          "chunk in force; -1: no inpainting", read_only=True, low=-1),
+    Param("torch_threads", 1, "torch threads of this process (1 is best on 2 cores; about "
+          "half the cores on bigger machines)", read_only=True, low=1, high=256),
+    Param("max_zones", DEFAULT_MAX_ZONES, "zones in force at most; more are refused",
+          read_only=True, low=1),
+    Param("max_vertices", DEFAULT_MAX_VERTICES, "vertices per zone at most", read_only=True,
+          low=3),
+    # What the planner knows of the robot (PushT's by default), read at start.
+    Param("robot.pusher_radius", float(PUSHT_ROBOT.pusher_radius),
+          "px; zones grown by it keep the pusher's body out", read_only=True, low=0.0),
+    Param("robot.workspace", [float(v) for v in PUSHT_ROBOT.workspace],
+          "px: x_min, y_min, x_max, y_max; outside counts as restricted", read_only=True),
+    Param("robot.kp", float(PUSHT_ROBOT.kp), "PD gain on position (1/s^2)", read_only=True,
+          low=0.0),
+    Param("robot.kv", float(PUSHT_ROBOT.kv), "PD gain on velocity (1/s)", read_only=True,
+          low=0.0),
+    Param("robot.control_hz", float(PUSHT_ROBOT.control_hz), "setpoints per second; stamps "
+          "are control steps at this rate", read_only=True, low=0.1),
+    Param("robot.physics_hz", float(PUSHT_ROBOT.physics_hz), "PD integration rate the shield "
+          "predicts the pusher with", read_only=True, low=0.1),
+)
 
 
 class PolicyNode(Node):
     def __init__(self) -> None:
-        super().__init__("policy_node")
-        self.declare_parameter("model", str(default_model_dir()))
-        self.declare_parameter("configuration", "r_g10_p_safe")
-        self.declare_parameter("configurations_file", str(config_dir() / "configurations.yaml"))
-        self.declare_parameter("noise_seed", 0)
-        self.declare_parameter("zone_lifetime", 0.0)  # s; 0: zones stay until removed
-        self.mode = self._read_only("mode", "lockstep", "lockstep: one setpoint per "
-                                    "observation, planned in the callback; realtime: one per "
-                                    "tick of rate_hz, planned in the background")
-        self.rate_hz = self._read_only("rate_hz", 10.0, "realtime: setpoints per second")
-        self.lead = self._read_only("lead", -1, "realtime: steps before the chunk runs out at "
-                                    "which the next plan starts; -1: from the measured planning "
-                                    "time")
-        self.soft = self._read_only("prefix_soft", 4, "realtime: waypoints after the committed "
-                                    "ones drawn toward the chunk in force; -1: no inpainting")
-        threads = self._read_only("torch_threads", 1, "torch threads of this process (1 is "
-                                  "best on 2 cores; about half the cores on bigger machines)")
-        max_zones = self._read_only("max_zones", DEFAULT_MAX_ZONES, "zones in force at most")
-        max_vertices = self._read_only("max_vertices", DEFAULT_MAX_VERTICES,
-                                       "vertices per zone at most")
-        if self.mode not in MODES:
-            raise ValueError(f"parameter mode must be one of {MODES}, got {self.mode!r}")
-        if not (math.isfinite(self.rate_hz) and self.rate_hz > 0) or threads < 1:
-            raise ValueError("parameters rate_hz and torch_threads must be positive")
+        super().__init__("policy_node", namespace=NAMESPACE)
+        values = declare(self, PARAMETERS)
+        self.mode, self.rate_hz = values["mode"], values["rate_hz"]
+        self.lead, self.soft, threads = values["lead"], values["prefix_soft"], \
+            values["torch_threads"]
         torch.set_num_threads(threads)
         if self.mode == "realtime":  # the clock thread waits at most 0.2 ms for another's GIL
             sys.setswitchinterval(0.0002)
-        self.robot = self._declare_robot()
-        self.policy = load_policy(self.get_parameter("model").value)
-        self.configurations = load_configurations(
-            self.get_parameter("configurations_file").value)
-        self.zones = LiveZones(max_zones, max_vertices)
+        self.robot = RobotModel(
+            **{name: values[f"robot.{name}"] for name in ROBOT_FIELDS},
+            workspace=tuple(values["robot.workspace"]),
+            pusher_in_observation=PUSHT_ROBOT.pusher_in_observation)
+        self.policy = load_policy(values["model"])
+        self.configurations = load_configurations(values["configurations_file"])
+        self.zones = LiveZones(values["max_zones"], values["max_vertices"])
         self.zone_counts = {"zone_messages": 0, "zones_applied": 0, "zones_refused": 0,
                             "zone_batches": 0}
-        self.generator = torch.Generator().manual_seed(self.get_parameter("noise_seed").value)
+        self.generator = torch.Generator().manual_seed(values["noise_seed"])
         self.controller: RealtimeController | None = None
-        self._use_configuration(self.get_parameter("configuration").value)
+        self._use_configuration(values["configuration"])
         self.add_on_set_parameters_callback(self._on_parameters)
 
         self.setpoint_pub = self._publisher("setpoint", PointStamped)
@@ -167,24 +184,6 @@ class PolicyNode(Node):
         return self.create_subscription(msg_type, TOPICS[topic].name, callback,
                                         qos_profile(TOPICS[topic]))
 
-    def _read_only(self, name: str, default, description: str):
-        descriptor = ParameterDescriptor(description=description, read_only=True)
-        return self.declare_parameter(name, default, descriptor).value
-
-    def _declare_robot(self) -> RobotModel:
-        """robot.* parameters (read at start), PushT's by default."""
-        values = {}
-        for name, description in ROBOT_PARAMETERS.items():
-            default = getattr(PUSHT_ROBOT, name)
-            default = [float(v) for v in default] if name == "workspace" else float(default)
-            descriptor = ParameterDescriptor(description=description, read_only=True)
-            values[name] = self.declare_parameter(f"robot.{name}", default, descriptor).value
-        values["workspace"] = tuple(values["workspace"])
-        if len(values["workspace"]) != 4:
-            raise ValueError(f"parameter robot.workspace needs 4 numbers, got "
-                             f"{list(values['workspace'])}")
-        return RobotModel(**values, pusher_in_observation=PUSHT_ROBOT.pusher_in_observation)
-
     def _use_configuration(self, name: str) -> None:
         if name not in self.configurations:
             raise ValueError(f"unknown configuration {name!r}; known: "
@@ -203,9 +202,6 @@ class PolicyNode(Node):
                 except ValueError as error:
                     return SetParametersResult(successful=False, reason=str(error))
                 self.get_logger().info(f"configuration now {parameter.value!r}")
-            elif parameter.name in ("model", "configurations_file", "noise_seed"):
-                return SetParametersResult(successful=False,
-                                           reason=f"{parameter.name} is read at start only")
         return SetParametersResult(successful=True)
 
     # -- observations -> setpoints ----------------------------------------------------------------
@@ -415,7 +411,7 @@ class PolicyNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    return spin_node(PolicyNode, "policy_node", args)
+    return spin_node(PolicyNode, "policy_node", args, PARAMETERS, __doc__)
 
 
 if __name__ == "__main__":

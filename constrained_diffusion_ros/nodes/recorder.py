@@ -45,7 +45,9 @@ from rosbags.interfaces import (
 from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
 from rosbags.typesys import Stores, get_typestore
 
-from msg_schemas import TOPICS, Endpoint, qos_profile
+from msg_schemas import NAMESPACE, TOPICS, Endpoint, qos_profile
+from msg_schemas.parameters import Param, declare
+from msg_schemas.spin import answered_help
 
 BAG_VERSION = 9  # rosbag2 metadata version written by ROS 2 Jazzy
 
@@ -72,15 +74,22 @@ def bag_qos(profile: QoSProfile) -> Qos:
         avoid_ros_namespace_conventions=profile.avoid_ros_namespace_conventions)
 
 
+PARAMETERS = (
+    Param("output", "trials/bag", "rosbag2 directory (MCAP) to write; must not exist yet",
+          read_only=True),
+    Param("metadata_file", "", "JSON file stored in the bag's metadata (read at start and at "
+          "close); empty: none", read_only=True),
+)
+
+
 class Recorder(Node):
     """Raw subscriptions to every contract topic, written as they arrive."""
 
     def __init__(self) -> None:
-        super().__init__("recorder")
-        self.declare_parameter("output", "trials/bag")  # bag directory; must not exist yet
-        self.declare_parameter("metadata_file", "")  # JSON file stored in the bag; "" none
-        self.output = Path(self.get_parameter("output").value)
-        metadata_file = self.get_parameter("metadata_file").value
+        super().__init__("recorder", namespace=NAMESPACE)
+        values = declare(self, PARAMETERS)
+        self.output = Path(values["output"])
+        metadata_file = values["metadata_file"]
         self.metadata_file = Path(metadata_file) if metadata_file else None
         self.trial_metadata = self.read_metadata(warn_missing=False)
 
@@ -89,14 +98,16 @@ class Recorder(Node):
                                             storage_plugin=StoragePlugin.MCAP)
         self.writer.open()  # raises WriterError if the directory appeared meanwhile
         self.connections = {}  # topic -> rosbags Connection, added at its first message
-        names = [endpoint.name for endpoint in TOPICS.values()]
-        self.counts = dict.fromkeys(names, 0)
-        self.publisher_counts = dict.fromkeys(names, 0)
-        self.subscriptions_by_topic = {
-            endpoint.name: self.create_subscription(
-                message_class(endpoint.type), endpoint.name, partial(self.on_message, endpoint),
-                qos_profile(endpoint, "recorder"), raw=True)
-            for endpoint in TOPICS.values()}
+        # Keyed by full name (namespace and remapping applied), as the bag stores them.
+        self.subscriptions_by_topic = {}
+        for endpoint in TOPICS.values():
+            topic = self.resolve_topic_name(endpoint.name)
+            self.subscriptions_by_topic[topic] = self.create_subscription(
+                message_class(endpoint.type), endpoint.name,
+                partial(self.on_message, endpoint, topic), qos_profile(endpoint, "recorder"),
+                raw=True)
+        self.counts = dict.fromkeys(self.subscriptions_by_topic, 0)
+        self.publisher_counts = dict.fromkeys(self.subscriptions_by_topic, 0)
         self.publisher_timer = self.create_timer(0.2, self.check_publishers)
         self.get_logger().info(f"recording {len(TOPICS)} topics to {self.output}")
 
@@ -112,17 +123,17 @@ class Recorder(Node):
             self.get_logger().warning(f"metadata_file {self.metadata_file} unreadable: {error}")
         return None
 
-    def on_message(self, endpoint: Endpoint, data: bytes) -> None:
+    def on_message(self, endpoint: Endpoint, topic: str, data: bytes) -> None:
         if self.writer is None:
             return
-        connection = self.connections.get(endpoint.name)
+        connection = self.connections.get(topic)
         if connection is None:
             connection = self.writer.add_connection(
-                endpoint.name, endpoint.type, typestore=self.typestore,
+                topic, endpoint.type, typestore=self.typestore,
                 offered_qos_profiles=[bag_qos(qos_profile(endpoint, "publisher"))])
-            self.connections[endpoint.name] = connection
+            self.connections[topic] = connection
         self.writer.write(connection, self.get_clock().now().nanoseconds, data)
-        self.counts[endpoint.name] += 1
+        self.counts[topic] += 1
 
     def check_publishers(self) -> None:
         """Log each topic's matched publishers when the number changes: what is being recorded."""
@@ -150,6 +161,8 @@ class Recorder(Node):
 
 
 def main(args: list[str] | None = None) -> int:
+    if answered_help(args, "recorder", __doc__, PARAMETERS):
+        return 0
     # Own signal handlers instead of rclpy's: rclpy's would shut the context down first, and the
     # bag is closed (and its summary logged) while ROS still runs.
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)

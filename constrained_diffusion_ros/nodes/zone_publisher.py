@@ -5,7 +5,7 @@ topic is latched (transient local), so a policy node that starts later still get
 are also re-sent at `rate_hz` (0: publish once and rely on the latching).
 
 A moving scenario is recomputed for the sim's current control step: with `follow_sim_time` the
-step is read from the stamp of `/pusht/pusher` (stamp * 10) and the zone is published whenever a
+step is read from the stamp of `pusher` (stamp * 10) and the zone is published whenever a
 new sim step is seen, so a lockstep trial sees the same zone positions however fast it runs;
 without it the step is the wall time since start * 10.
 
@@ -27,8 +27,9 @@ from rclpy.node import Node
 
 from constrained_diffusion_ros.evaluation.scenarios import Scenario, load_scenarios
 from constrained_diffusion_ros.zones import validate_polygon
-from msg_schemas import TOPICS, qos_profile
+from msg_schemas import NAMESPACE, TOPICS, qos_profile
 from msg_schemas.conversions import step_of_stamp, zone_message
+from msg_schemas.parameters import Param, declare
 from msg_schemas.spin import spin_node
 from sim_bridge import CONTROL_HZ
 
@@ -46,22 +47,32 @@ def parse_polygon(text: str, label: str = "parameter polygon") -> np.ndarray:
     return np.asarray(vertices, dtype=float)
 
 
+PARAMETERS = (
+    Param("scenario", "", "a scenario name from the scenarios file; empty: none"),
+    Param("scenarios_file", "", "scenarios YAML; empty: the shipped config/scenarios.yaml"),
+    Param("first_id", 1, "id of the scenario's first zone, then +1 each", low=0,
+          high=2**31 - 1),
+    Param("polygon", "", "an ad-hoc zone 'x1,y1;x2,y2;...' in workspace px; empty: none"),
+    Param("zone_id", -1, "the ad-hoc zone's id; -1: the id after the scenario's zones", low=-1,
+          high=2**31 - 1),
+    Param("remove_id", -1, "0 or more: publish an empty polygon with this id (removes it)",
+          low=-1, high=2**31 - 1),
+    Param("rate_hz", 2.0, "re-publish rate; 0: publish once (the topic is latched)", low=0.0,
+          high=1000.0),
+    Param("follow_sim_time", True, "moving zones follow the sim's step (from the pusher "
+          "stamps); false: wall time"),
+)
+
+
 class ZonePublisher(Node):
     """Publishes a scenario's zones, one ad-hoc polygon and/or one removal, and keeps them up."""
 
     def __init__(self) -> None:
-        super().__init__("zone_publisher")
-        self.declare_parameter("scenario", "")  # name in the scenarios file; "" none
-        self.declare_parameter("scenarios_file", "")  # "" the shipped config/scenarios.yaml
-        self.declare_parameter("first_id", 1)  # id of the scenario's first zone, then +1 each
-        self.declare_parameter("polygon", "")  # ad-hoc zone "x1,y1;x2,y2;..."
-        self.declare_parameter("zone_id", -1)  # its id; -1 the id after the scenario's zones
-        self.declare_parameter("remove_id", -1)  # >= 0: publish an empty polygon with this id
-        self.declare_parameter("rate_hz", 2.0)  # re-publish rate; 0 publish once (latched)
-        self.declare_parameter("follow_sim_time", True)  # moving zones follow the sim's step
+        super().__init__("zone_publisher", namespace=NAMESPACE)
+        values = declare(self, PARAMETERS)
 
         def param(name: str):
-            return self.get_parameter(name).value
+            return values[name]
 
         self.scenario: Scenario | None = None
         if name := param("scenario"):
@@ -132,7 +143,8 @@ class ZonePublisher(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    return spin_node(ZonePublisher, "zone_publisher", args, (OSError, yaml.YAMLError))
+    return spin_node(ZonePublisher, "zone_publisher", args, PARAMETERS, __doc__,
+                     startup_errors=(OSError, yaml.YAMLError))
 
 
 if __name__ == "__main__":

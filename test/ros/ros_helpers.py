@@ -16,7 +16,7 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 
 from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_domain_id
-from msg_schemas import TOPICS, qos_profile
+from msg_schemas import NAMESPACE, TOPICS, qos_profile
 from msg_schemas.conversions import stamp_nanoseconds, stamp_of_step, step_of_stamp
 from sim_bridge import CONTROL_HZ
 
@@ -53,7 +53,7 @@ class Ros:
     def __init__(self, domain_id: int, name: str = "test_node") -> None:
         self.context = Context()
         rclpy.init(context=self.context, domain_id=domain_id)
-        self.node = rclpy.create_node(name, context=self.context)
+        self.node = rclpy.create_node(name, namespace=NAMESPACE, context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
 

@@ -25,9 +25,11 @@ def test_every_interface_type_resolves_to_a_ros_class() -> None:
 
 
 def test_no_source_file_writes_a_topic_name_outside_the_contract() -> None:
+    """Code names a topic by its contract key (`TOPICS["zones"]`), never by a full or
+    namespaced spelling of its own ("/pusht/zones", "pusht/zones")."""
     names = [e.name for e in [*TOPICS.values(), *SERVICES.values()]]
     # As a string literal; docstrings may mention a topic in backquotes.
-    pattern = re.compile("|".join(f"[\"']{re.escape(name)}[\"']" for name in names))
+    pattern = re.compile("|".join(f"[\"'][^\"'\\s]*/{re.escape(name)}[\"']" for name in names))
     sources = [*REPO.glob("constrained_diffusion_ros/**/*.py"), *REPO.glob("sim_bridge/*.py"),
                *REPO.glob("msg_schemas/*.py"), *REPO.glob("scripts/*.py")]
     offenders = [str(path.relative_to(REPO)) for path in sources
@@ -35,6 +37,9 @@ def test_no_source_file_writes_a_topic_name_outside_the_contract() -> None:
     assert len(sources) > 20 and offenders == []
 
 
-def test_code_refers_to_topics_by_their_contract_key() -> None:
-    assert TOPICS["setpoint"].name == "/pusht/setpoint"
+def test_names_are_relative_and_resolve_in_the_default_or_a_given_namespace() -> None:
+    assert TOPICS["setpoint"].name == "setpoint"
+    assert TOPICS["setpoint"].resolved() == "/pusht/setpoint"
+    assert TOPICS["zones"].resolved("/robot1") == "/robot1/zones"
+    assert TOPICS["zones"].resolved("/") == "/zones"
     assert SERVICES["reset"].type == "std_srvs/srv/Trigger"

@@ -42,7 +42,7 @@ def test_recorder_writes_every_topic_and_metadata(ros, sim, processes, tmp_path)
 
     def recorder_matched_all() -> bool:
         text = log.read_text()
-        return all(f"{e.name}: 1 publisher(s) matched" in text for e in TOPICS.values()) \
+        return all(f"{e.resolved()}: 1 publisher(s) matched" in text for e in TOPICS.values()) \
             and sim.setpoint_pub.get_subscription_count() >= 2 \
             and all(p.get_subscription_count() >= 1 for p in publishers.values())
 
@@ -72,7 +72,7 @@ def test_recorder_writes_every_topic_and_metadata(ros, sim, processes, tmp_path)
     # holds every setpoint this session published, from before the recorder started too.
     assert counts["/pusht/setpoint"] == sim.sent
     for topic in published:
-        assert counts.get(TOPICS[topic].name) == 2, topic
+        assert counts.get(TOPICS[topic].resolved()) == 2, topic
     for topic in ("/pusht/pusher", "/pusht/keypoints", "/pusht/block_pose"):
         recorded = [stamp_ns(m.header.stamp) for m in messages[topic]]
         recorded = recorded[len(recorded) - recorded[::-1].index(0):]  # since the last reset
@@ -80,7 +80,7 @@ def test_recorder_writes_every_topic_and_metadata(ros, sim, processes, tmp_path)
         assert all(recorded.count(s) == 1 for s in new[:-1]), topic  # no step recorded twice
     assert counts["/pusht/score"] >= 3
     assert sorted(m.polygon.id for m in messages["/pusht/zones"]) == [40, 41]
-    by_name = {endpoint.name: endpoint for endpoint in TOPICS.values()}
+    by_name = {endpoint.resolved(): endpoint for endpoint in TOPICS.values()}
     for topic, connection in connections.items():
         assert connection.msgtype == by_name[topic].type
         assert connection.digest.startswith("RIHS01_")

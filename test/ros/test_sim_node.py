@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 from geometry_msgs.msg import PointStamped
+from rclpy.parameter import Parameter
 from ros_helpers import SEED, stamp_ns, step_ns
 from std_srvs.srv import Trigger
 
@@ -73,8 +74,10 @@ def test_sim_reset_to_seed_parameter(ros, sim):
     assert (first.point.x, first.point.y) == tuple(seeded_state(seed)[:2])
     assert sim.stamps() == [0]
 
-    refused = sim.reset(-1)  # a seed the simulator refuses: answered, not fatal
-    assert not refused.success and "seed" in refused.message
+    future = sim.params.set_parameters([Parameter("seed", value=-1)])  # refused with a reason
+    assert ros.spin_until(future.done, 10.0)
+    refused = future.result().results[0]
+    assert not refused.successful and "parameter seed must be in [0, inf]" in refused.reason
     assert sim.process.poll() is None
     assert sim.reset(SEED).success  # back to the scene the other tests expect
 

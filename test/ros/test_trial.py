@@ -49,11 +49,11 @@ def test_trial_command_records_the_batched_evaluation(tiny_model, configurations
     assert len(iio.imread(output / "trial.gif", index=None)) == steps // 2 + 1
 
     messages = read_messages(output / "bag")
-    assert set(messages) == {endpoint.name for endpoint in TOPICS.values()}
+    assert set(messages) == {endpoint.resolved() for endpoint in TOPICS.values()}
     info = yaml.safe_load((output / "bag" / "metadata.yaml").read_text())
     custom = info["rosbag2_bagfile_information"]["custom_data"]
     assert json.loads(custom["message_counts"]) == {t: len(m) for t, m in messages.items()}
-    setpoint_steps = [stamp_step(m.header.stamp) for m in messages[TOPICS["setpoint"].name]]
+    setpoint_steps = [stamp_step(m.header.stamp) for m in messages[TOPICS["setpoint"].resolved()]]
     # One setpoint per executed step; the policy may also answer the final observation (step
     # `steps`), which the sim ignores at max_steps, before the trial stops it.
     assert setpoint_steps[:steps] == list(range(steps))

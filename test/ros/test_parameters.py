@@ -1,0 +1,70 @@
+"""Parameters: one table per node, with descriptors, checked with a reason, and `--help`."""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from constrained_diffusion_ros.nodes import policy_node, recorder, zone_publisher
+from msg_schemas.parameters import Param, usage
+from sim_bridge import sim_node
+
+NODES = {"policy_node": policy_node, "sim_node": sim_node, "recorder": recorder,
+         "zone_publisher": zone_publisher}
+REPO = Path(__file__).resolve().parents[2]
+LIFETIME = Param("zone_lifetime", 0.0, "s", low=0.0)
+
+
+def test_a_double_takes_an_integer_and_refuses_nan_negative_and_text() -> None:
+    assert LIFETIME.reason(2) is None and LIFETIME.reason(2.5) is None
+    assert "finite number" in LIFETIME.reason(math.nan)
+    assert "[0, inf]" in LIFETIME.reason(-1.0)
+    assert "finite number" in LIFETIME.reason("2")
+    assert "finite number" in LIFETIME.reason(True)
+
+
+def test_choices_lists_and_integers_are_checked() -> None:
+    mode = Param("mode", "lockstep", "", choices=("lockstep", "realtime"))
+    assert "one of ['lockstep', 'realtime']" in mode.reason("fast")
+    workspace = Param("robot.workspace", [0.0, 0.0, 512.0, 512.0], "")
+    assert "4 numbers" in workspace.reason([0.0, 1.0])
+    threads = Param("torch_threads", 1, "", low=1, high=256)
+    assert threads.reason(0) and threads.reason(1.5) and threads.reason(4) is None
+
+
+def test_descriptors_carry_description_range_and_read_only() -> None:
+    rate = Param("rate_hz", 10.0, "setpoints per second", read_only=True, low=0.1)
+    descriptor = rate.descriptor()
+    assert descriptor.description == "setpoints per second" and descriptor.read_only
+    assert descriptor.floating_point_range[0].from_value == pytest.approx(0.1)
+    assert descriptor.dynamic_typing  # so that `-p rate_hz:=20` (an integer) is taken
+
+
+@pytest.mark.parametrize("name", sorted(NODES))
+def test_every_parameter_has_a_description_and_a_valid_default(name: str) -> None:
+    for param in NODES[name].PARAMETERS:
+        assert param.description and param.reason(param.default) is None, param.name
+
+
+def test_usage_lists_parameters_and_the_nodes_own_topics() -> None:
+    text = usage("policy_node", "The policy.", policy_node.PARAMETERS)
+    assert "zone_lifetime (default 0.0, range [0, inf])" in text
+    assert "subscribes zones (geometry_msgs/msg/PolygonInstanceStamped)" in text
+    assert "publishes setpoint" in text and "serves clear_zones" in text
+    assert "publishes pusher" not in text  # the simulator's
+
+
+@pytest.mark.parametrize("module", ["sim_bridge.sim_node", "constrained_diffusion_ros.nodes."
+                                    "recorder", "constrained_diffusion_ros.nodes.policy_node"])
+def test_help_prints_usage_and_exits_without_starting_the_node(module: str, tmp_path) -> None:
+    done = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True,
+                          text=True, timeout=120, cwd=tmp_path,
+                          env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith("usage: ") and "parameters:" in done.stdout
+    assert list(tmp_path.iterdir()) == []  # the recorder wrote no bag

@@ -16,6 +16,7 @@ zones in force stay in force. Counters of both are in `policy_status`.
 
 from __future__ import annotations
 
+import gc
 import sys
 import threading
 import time
@@ -164,6 +165,11 @@ class PolicyNode(Node):
         self.violations = 0
         self.zone_change_time: float | None = None
         self.replan_latency_ms = float("nan")
+        if self.mode == "realtime":
+            # What start-up built (policy, torch, rclpy) lives as long as the node: out of the
+            # collector's sight, so a full collection no longer holds the GIL for 100s of ms.
+            gc.collect()
+            gc.freeze()
         self.get_logger().info(
             f"{self.mode} policy from {self.get_parameter('model').value}, configuration "
             f"{self.config.name!r}")

@@ -29,10 +29,13 @@ class Endpoint:
     @property
     def key(self) -> str:
         """How code refers to it: `TOPICS["setpoint"].name` is "setpoint"."""
-        return self.name
+        return self.name.rsplit("/", 1)[-1]
 
     def resolved(self, namespace: str = NAMESPACE) -> str:
-        """The full name in `namespace`: "/pusht/setpoint" by default."""
+        """The full name in `namespace`: "/pusht/setpoint" by default (an absolute name, as
+        /diagnostics, stays as it is)."""
+        if self.name.startswith("/"):
+            return self.name
         prefix = namespace.strip("/")
         return f"/{prefix}/{self.name}" if prefix else f"/{self.name}"
 
@@ -58,9 +61,10 @@ TOPICS: dict[str, Endpoint] = {e.key: e for e in (
              "Restricted zones keyed by id: add or replace; an empty polygon removes the id"),
     Endpoint("zone_markers", "visualization_msgs/msg/MarkerArray", "latched",
              "policy_node", ("recorder",), "px, frame workspace", "Active zones for viewers"),
-    Endpoint("policy_status", "diagnostic_msgs/msg/DiagnosticStatus", "sensor",
-             "policy_node", ("recorder",), "key/value strings",
-             "Violations, replans, planning latency (ms), zones in force"),
+    Endpoint("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", "sensor", "policy_node",
+             ("recorder",), "key/value strings",
+             "Health (OK / WARN / ERROR) and counters: plans, planning time, zones in force by "
+             "id; absolute, as every ROS diagnostics publisher"),
 )}
 
 SERVICES: dict[str, Endpoint] = {e.key: e for e in (

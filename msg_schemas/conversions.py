@@ -11,7 +11,7 @@ nanoseconds, so a stamp names its step without rounding doubt.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 
 import numpy as np
 
@@ -130,15 +130,17 @@ def path_of(msg) -> np.ndarray:
                     dtype=float).reshape(-1, 2)
 
 
-def zone_markers(polygons: Iterable[np.ndarray], stamp):
-    """Closed red line strips for viewers, after a DELETEALL that clears the previous set."""
+def zone_markers(outlines: Mapping[int, np.ndarray], stamp, namespace: str = "zones"):
+    """One closed red line strip per zone for viewers, its marker id the zone's id (in marker
+    namespace `namespace`), outline as received; after a DELETEALL that clears the previous
+    set."""
     from geometry_msgs.msg import Point
     from visualization_msgs.msg import Marker, MarkerArray
 
-    markers = MarkerArray(markers=[Marker(action=Marker.DELETEALL)])
-    for index, polygon in enumerate(polygons):
-        marker = _header(Marker(type=Marker.LINE_STRIP, action=Marker.ADD, id=index, ns="zones"),
-                         stamp)
+    markers = MarkerArray(markers=[Marker(action=Marker.DELETEALL, ns=namespace)])
+    for zone_id, polygon in outlines.items():
+        marker = _header(Marker(type=Marker.LINE_STRIP, action=Marker.ADD, id=int(zone_id),
+                                ns=namespace), stamp)
         marker.scale.x = 2.0
         marker.color.r, marker.color.a = 1.0, 1.0
         marker.pose.orientation.w = 1.0

@@ -106,7 +106,7 @@ class Client:
 
     def __init__(self, domain_id: int, children: NodeProcesses) -> None:
         import rclpy
-        from diagnostic_msgs.msg import DiagnosticStatus
+        from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PointStamped, PolygonInstanceStamped
         from nav_msgs.msg import Path as PathMsg
         from rcl_interfaces.srv import SetParameters
@@ -138,8 +138,8 @@ class Client:
             (time.monotonic(), step_of_stamp(m.header.stamp, CONTROL_HZ), point_of(m))))
         subscribe("plan", PathMsg, self._on_plan)
         subscribe("zone_markers", MarkerArray, self._on_markers)
-        subscribe("policy_status", DiagnosticStatus,
-                  lambda m: self.status.update({kv.key: kv.value for kv in m.values}))
+        subscribe("diagnostics", DiagnosticArray,
+                  lambda m: self.status.update({kv.key: kv.value for kv in m.status[0].values}))
         self.zones = self.node.create_publisher(PolygonInstanceStamped, TOPICS["zones"].name,
                                                 qos_profile(TOPICS["zones"], "publisher"))
         self.reset = self.node.create_client(Trigger, SERVICES["reset"].name)

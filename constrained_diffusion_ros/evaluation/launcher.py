@@ -75,6 +75,11 @@ class NodeProcesses:
                        f"{self.log_dir / (name + '.log')})"
         return None
 
+    def logs(self) -> str:
+        """Every node log in the log directory, for a failure message."""
+        return "\n".join(f"--- {path.name}\n{path.read_text(errors='replace')}"
+                         for path in sorted(self.log_dir.glob("*.log")))
+
     def stop(self, name: str, timeout: float = 10.0) -> int | None:
         """SIGINT, then kill after `timeout`; returns the exit code (None: not running)."""
         process = self.processes.pop(name, None)

@@ -62,7 +62,6 @@ def run_trial(args: argparse.Namespace) -> dict:
     from std_srvs.srv import Trigger
     from visualization_msgs.msg import MarkerArray
 
-    from constrained_diffusion_ros.zones.geometry import ZoneSet
     from msg_schemas import qos_profile
 
     scenarios = load_scenarios()
@@ -136,8 +135,8 @@ def run_trial(args: argparse.Namespace) -> dict:
             return ready
 
         spin_until(discovered, "the nodes to discover each other")
-        if scenario is not None:  # the policy echoes the zones in force as markers
-            expected = len(ZoneSet.from_polygons(scenario.polygons_at(0)).polygons)
+        if scenario is not None:  # the policy echoes the zones in force as markers, one each
+            expected = len(scenario.polygons_at(0))
             spin_until(lambda: zones_in_force[-1] == expected if zones_in_force else False,
                        "the policy to hold the scenario's zones")
         future = reset.call_async(Trigger.Request())

@@ -11,7 +11,7 @@ delays it.
 
 Zones come in as id-keyed polygons, taken in batches as fast as they come and coalesced to the
 last message per id; a malformed one, or one over the caps, is refused with a warning while the
-zones in force stay in force. Counters of both are in `policy_status`.
+zones in force stay in force. Counters of both are in the node's diagnostics (`/diagnostics`).
 """
 
 from __future__ import annotations
@@ -20,15 +20,18 @@ import gc
 import sys
 import threading
 import time
+from collections import OrderedDict
 
 import numpy as np
 import torch
-from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PointStamped, PolygonInstanceStamped, PolygonStamped
 from nav_msgs.msg import Path as PathMsg
 from rcl_interfaces.msg import SetParametersResult
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy
+from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
@@ -63,6 +66,8 @@ from sim_bridge.scene import observation as pusht_observation
 MODES = ("lockstep", "realtime")
 ROBOT_FIELDS = ("pusher_radius", "kp", "kv", "control_hz", "physics_hz")  # and workspace
 ZONE_BATCH_MAX = 10_000  # zone messages taken in one callback at most
+MARKER_NAMESPACE = "zones"  # zone markers: marker namespace <node namespace>/zones, id = zone id
+HEALTH_COUNTERS = ("violations", "zones_refused", "held_steps")  # their rise sets the level
 STATUS_PERIOD_S = 0.5  # realtime: status this often (zone markers: at most once per tick)
 
 PARAMETERS = (
@@ -125,7 +130,7 @@ class PolicyNode(Node):
         self.configurations = load_configurations(values["configurations_file"])
         self.zones = LiveZones(values["max_zones"], values["max_vertices"])
         self.zone_counts = {"zone_messages": 0, "zones_applied": 0, "zones_refused": 0,
-                            "zone_batches": 0}
+                            "zones_stale": 0, "zone_batches": 0}
         self.generator = torch.Generator().manual_seed(values["noise_seed"])
         self.controller: RealtimeController | None = None
         self._use_configuration(values["configuration"])
@@ -134,9 +139,19 @@ class PolicyNode(Node):
         self.setpoint_pub = self._publisher("setpoint", PointStamped)
         self.plan_pub = self._publisher("plan", PathMsg)
         self.marker_pub = self._publisher("zone_markers", MarkerArray)
-        self.status_pub = self._publisher("policy_status", DiagnosticStatus)
+        self.status_pub = self._publisher("diagnostics", DiagnosticArray)
+        self._health_counts: dict[str, int] = {}
         # Zones first: when a zone and an observation are ready together, the zone is taken first.
-        self.zone_sub = self._subscribe("zones", PolygonInstanceStamped, self._on_zone)
+        # From any publisher: a volatile subscription matches every one, a transient-local one
+        # also gets a latched publisher's history when this node (re)starts; a message both
+        # deliver is taken once.
+        latched = qos_profile(TOPICS["zones"])
+        volatile = qos_profile(TOPICS["zones"])
+        volatile.durability = DurabilityPolicy.VOLATILE
+        self.zone_subs = [self.create_subscription(PolygonInstanceStamped, TOPICS["zones"].name,
+                                                   self._on_zone, profile)
+                          for profile in (volatile, latched)]
+        self._zone_messages_seen: OrderedDict[tuple, None] = OrderedDict()
         self._subscribe("keypoints", PolygonStamped, self._on_keypoints)
         self._subscribe("pusher", PointStamped, self._on_pusher)
         self.create_service(Trigger, SERVICES["clear_zones"].name, self._on_clear)
@@ -339,19 +354,44 @@ class PolicyNode(Node):
                           ticks_missed=self.clock.missed,
                           tick_late_p99_ms=f"{1000 * self.clock.late_p99():.1f}",
                           clock_realtime=self.clock.realtime)
-        status = DiagnosticStatus(level=DiagnosticStatus.OK, name="policy_node",
-                                  message="running", hardware_id="pusht")
+        values["zone_ids"] = ",".join(str(i) for i in self.zones.ids)
+        level, message = self._health(values)
+        status = DiagnosticStatus(level=level, name=self.get_fully_qualified_name(),
+                                  message=message, hardware_id="pusht")
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
-        self.status_pub.publish(status)
+        self.status_pub.publish(DiagnosticArray(header=Header(stamp=self.get_clock().now()
+                                                             .to_msg()), status=[status]))
+
+    def _health(self, values: dict) -> tuple[bytes, str]:
+        """The diagnostic level since the last report: ERROR if a setpoint sent was inside a
+        zone, WARN if zones were refused or (realtime) steps passed with no plan in time."""
+        counts = {key: int(values.get(key, 0)) for key in HEALTH_COUNTERS}
+        since = {key: counts[key] - self._health_counts.get(key, 0) for key in counts}
+        self._health_counts = counts
+        if since["violations"]:
+            return DiagnosticStatus.ERROR, f"{since['violations']} setpoint(s) inside a zone"
+        problems = []
+        if since["zones_refused"]:
+            problems.append(f"{since['zones_refused']} zone message(s) refused")
+        if since["held_steps"]:
+            problems.append(f"planning missed its deadline ({since['held_steps']} step(s) "
+                            f"with no waypoint)")
+        if problems:
+            return DiagnosticStatus.WARN, "; ".join(problems)
+        return DiagnosticStatus.OK, "running"
 
     # -- zones ------------------------------------------------------------------------------------
 
-    def _on_zone(self, msg: PolygonInstanceStamped) -> None:
+    def _on_zone(self, msg: PolygonInstanceStamped, info: dict) -> None:
         """Takes every zone message waiting, not just this one: a flood is applied as one
         batch (the last message per id) and the union is rebuilt once, when next read."""
-        messages = [msg, *self._take_waiting(self.zone_sub, ZONE_BATCH_MAX - 1)]
+        messages = [(msg, info)]
+        for subscription in self.zone_subs:
+            messages += self._take_waiting(subscription, ZONE_BATCH_MAX - len(messages))
         updates, refused = [], 0
-        for message in messages:
+        for message, message_info in messages:
+            if self._seen_before(message, message_info):
+                continue
             zone_id = int(message.polygon.id)
             if message.header.frame_id not in ("", FRAME_ID):
                 refused += 1
@@ -359,16 +399,34 @@ class PolicyNode(Node):
                     f"zone {zone_id} refused: frame {message.header.frame_id!r} is not "
                     f"{FRAME_ID!r}")
                 continue
-            updates.append((zone_id, [(p.x, p.y) for p in message.polygon.polygon.points]))
+            stamp = stamp_seconds(message.header.stamp) or None  # 0: unstamped, from arrival
+            updates.append((zone_id, [(p.x, p.y) for p in message.polygon.polygon.points],
+                            stamp))
         lifetime = self.get_parameter("zone_lifetime").value or None
-        outcome = self.zones.apply(updates, time.monotonic(), lifetime)
+        outcome = self.zones.apply(updates, self._now(), lifetime)
         self._count_zones(outcome, refused)
         if outcome.changed:
             self._zones_changed()
 
-    def _take_waiting(self, subscription, limit: int) -> list:
-        """The messages already queued on `subscription` (rclpy's own take, as its executor
-        does), so a callback can handle a burst at once."""
+    def _seen_before(self, message: PolygonInstanceStamped, info: dict) -> bool:
+        """Whether the other zone subscription already delivered this message (a latched
+        publisher reaches both): same publication time, sequence number and id."""
+        key = (info.get("source_timestamp"), info.get("publication_sequence_number"),
+               message.polygon.id)
+        if key in self._zone_messages_seen:
+            return True
+        self._zone_messages_seen[key] = None
+        if len(self._zone_messages_seen) > 2 * ZONE_BATCH_MAX:
+            self._zone_messages_seen.popitem(last=False)
+        return False
+
+    def _now(self) -> float:
+        """s on the node's clock (sim time with use_sim_time), as zone stamps are."""
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _take_waiting(self, subscription, limit: int) -> list[tuple]:
+        """The (message, info) pairs already queued on `subscription` (rclpy's own take, as
+        its executor does), so a callback can handle a burst at once."""
         taken = []
         try:
             while len(taken) < limit:
@@ -377,7 +435,7 @@ class PolicyNode(Node):
                                                            subscription.raw)
                 if got is None:
                     break
-                taken.append(got[0])
+                taken.append(got)
         except (AttributeError, TypeError):  # another rclpy: one message per callback
             pass
         return taken
@@ -388,6 +446,7 @@ class PolicyNode(Node):
         counts["zone_messages"] += outcome.received + refused_frames
         counts["zones_applied"] += outcome.applied
         counts["zones_refused"] += len(outcome.refused) + refused_frames
+        counts["zones_stale"] += outcome.stale
         for zone_id, reason in outcome.refused:
             self.get_logger().warning(f"zone {zone_id} refused, zones in force kept: {reason}")
 
@@ -401,7 +460,7 @@ class PolicyNode(Node):
         self.controller.zones_changed(lambda safe: self._hold(safe, send_now=True))
 
     def _expire_zones(self) -> None:
-        if self.zones.expire(time.monotonic()):
+        if self.zones.expire(self._now()):
             self._zones_changed()
 
     def _on_clear(self, _request, response):
@@ -413,7 +472,8 @@ class PolicyNode(Node):
 
     def _publish_markers(self) -> None:
         stamp = self.get_clock().now().to_msg()
-        self.marker_pub.publish(zone_markers(self.zones.snapshot().polygons, stamp))
+        namespace = "/".join((self.get_namespace().rstrip("/"), MARKER_NAMESPACE))
+        self.marker_pub.publish(zone_markers(self.zones.outlines(), stamp, namespace))
 
 
 def main(args: list[str] | None = None) -> int:

@@ -7,6 +7,7 @@ import threading
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
+import numpy as np
 import shapely
 from numpy.typing import ArrayLike
 
@@ -18,6 +19,7 @@ ZoneId = str | int
 @dataclass(frozen=True)
 class _Zone:
     polygon: shapely.Polygon
+    vertices: np.ndarray  # (V, 2) as received (validated), for viewers
     expires_at: float  # math.inf: never
 
 
@@ -31,18 +33,23 @@ class BatchOutcome:
 
     received: int = 0  # messages in the batch
     applied: int = 0  # ids whose latest message was taken (added, replaced or removed)
+    stale: int = 0  # ids whose latest message had outlived its lifetime already (a replay)
     superseded: int = 0  # messages replaced by a later one for the same id in the batch
     refused: list[tuple[ZoneId, str]] = field(default_factory=list)  # (id, why)
     changed: bool = False  # the zones in force changed
 
 
-def coalesce(updates: Iterable[tuple[ZoneId, ArrayLike]]) -> dict[ZoneId, ArrayLike]:
-    """The last vertices per id, in the order the ids last appeared: a batch of messages
-    taken at once reduces to one update per id, and none is lost."""
-    latest: dict[ZoneId, ArrayLike] = {}
-    for zone_id, vertices in updates:
+# (id, vertices) or (id, vertices, stamp): a message as it came
+Update = tuple[ZoneId, ArrayLike] | tuple[ZoneId, ArrayLike, float | None]
+
+
+def coalesce(updates: Iterable[Update]) -> dict[ZoneId, tuple[ArrayLike, float | None]]:
+    """The last (vertices, stamp) per id, in the order the ids last appeared: a batch of
+    messages taken at once reduces to one update per id, and none is lost."""
+    latest: dict[ZoneId, tuple[ArrayLike, float | None]] = {}
+    for zone_id, vertices, *stamp in updates:
         latest.pop(zone_id, None)
-        latest[zone_id] = vertices
+        latest[zone_id] = (vertices, stamp[0] if stamp else None)
     return latest
 
 
@@ -66,47 +73,56 @@ class LiveZones:
         self._snapshot: ZoneSet | None = None
 
     def upsert(
-        self, zone_id: ZoneId, vertices: ArrayLike, now: float, lifetime: float | None = None
-    ) -> None:
-        """Add or replace a zone; empty vertices remove it (the ROS convention).
+        self, zone_id: ZoneId, vertices: ArrayLike, now: float, lifetime: float | None = None,
+        stamp: float | None = None,
+    ) -> bool:
+        """Add or replace a zone; empty vertices remove it (the ROS convention). Returns False
+        for a zone whose lifetime had passed before it came (a stale replay: nothing changes).
 
-        `lifetime` in the same clock as `now`; None or 0 (as in ROS markers) means forever.
+        `lifetime` in the same clock as `now`; None or 0 (as in ROS markers) means forever. Its
+        age counts from `stamp` (when the zone was published, as nav2's collision monitor
+        does), from `now` if there is none; a stamp from the future counts as now.
         Invalid vertices raise ValueError before anything changes, so the zones in force stay.
         """
         if len(vertices) == 0:
             self.remove(zone_id)
-            return
+            return True
         if lifetime is not None and not lifetime >= 0:
             raise ValueError(f"zone {zone_id!r}: lifetime must be >= 0 or None, got {lifetime}")
+        expires_at = min(now, now if stamp is None else stamp) + lifetime if lifetime \
+            else math.inf
+        if expires_at <= now:
+            return False
         if len(vertices) > self.max_vertices:
             raise ValueError(f"zone {zone_id!r}: {len(vertices)} vertices, more than the "
                              f"{self.max_vertices} allowed")
         polygon = validate_polygon(vertices, f"zone {zone_id!r}")
-        expires_at = now + lifetime if lifetime else math.inf
         with self._lock:
             previous = self._zones.get(zone_id)
             if previous is None and len(self._zones) >= self.max_zones:
                 raise ValueError(f"zone {zone_id!r}: {self.max_zones} zones in force already "
                                  f"(the cap); remove one first")
-            self._zones[zone_id] = _Zone(polygon, expires_at)
+            self._zones[zone_id] = _Zone(polygon, np.asarray(vertices, float), expires_at)
             if previous is None or not previous.polygon.equals_exact(polygon, 0.0):
                 self._changed()  # a re-published, identical zone only refreshes its lifetime
+        return True
 
-    def apply(self, updates: Iterable[tuple[ZoneId, ArrayLike]], now: float,
+    def apply(self, updates: Iterable[Update], now: float,
               lifetime: float | None = None) -> BatchOutcome:
-        """A batch of messages (id, vertices) as they came: coalesced to the last per id, each
-        applied as `upsert` would; a refused one leaves that id as it was."""
+        """A batch of messages (id, vertices[, stamp]) as they came: coalesced to the last per
+        id, each applied as `upsert` would; a refused one leaves that id as it was."""
         updates = list(updates)
         latest = coalesce(updates)
         outcome = BatchOutcome(received=len(updates), superseded=len(updates) - len(latest))
         before = self._version
-        for zone_id, vertices in latest.items():
+        for zone_id, (vertices, stamp) in latest.items():
             try:
-                self.upsert(zone_id, vertices, now, lifetime)
+                fresh = self.upsert(zone_id, vertices, now, lifetime, stamp)
             except ValueError as error:
                 outcome.refused.append((zone_id, str(error)))
             else:
-                outcome.applied += 1
+                outcome.applied += fresh
+                outcome.stale += not fresh
         outcome.changed = self._version != before
         return outcome
 
@@ -154,6 +170,11 @@ class LiveZones:
 
     def version_at(self, step: int) -> int:
         return self._version
+
+    def outlines(self) -> dict[ZoneId, np.ndarray]:
+        """Each zone in force by id, (V, 2) vertices as received: what viewers show."""
+        with self._lock:
+            return {zone_id: zone.vertices for zone_id, zone in self._zones.items()}
 
     @property
     def ids(self) -> list[ZoneId]:

@@ -66,8 +66,10 @@ def test_messages_and_arrays_round_trip_in_the_workspace_frame() -> None:
     assert zone.polygon.id == 7
     np.testing.assert_allclose(polygon_of(zone.polygon.polygon), vertices)
     assert len(zone_message(7, None, stamp).polygon.polygon.points) == 0  # removes id 7
-    markers = zone_markers([vertices, vertices + 50], stamp)
+    markers = zone_markers({3: vertices, 7: vertices + 50}, stamp, "/robot1/zones")
     assert zones_shown(markers) == 2 and markers.markers[0].action == markers.markers[0].DELETEALL
+    assert [m.id for m in markers.markers[1:]] == [3, 7]  # keyed by zone id
+    assert {m.ns for m in markers.markers} == {"/robot1/zones"}
     assert len(markers.markers[1].points) == 4  # closed
 
 

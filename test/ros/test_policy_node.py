@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 import shapely
-from diagnostic_msgs.msg import DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import Point32, PointStamped, PolygonInstanceStamped, PolygonStamped
 from nav_msgs.msg import Path as PathMsg
 from ros_helpers import Ros, stamp_step, step_stamp
@@ -44,8 +44,9 @@ def depth(msg: PointStamped) -> float:
     return distance if ZONE_SHAPE.contains(point) else -distance
 
 
-def values(status: DiagnosticStatus) -> dict[str, str]:
-    return {kv.key: kv.value for kv in status.values}
+def values(report: DiagnosticArray) -> dict[str, str]:
+    """The policy's counters in one /diagnostics message."""
+    return {kv.key: kv.value for kv in report.status[0].values}
 
 
 class GatedLoop:
@@ -59,7 +60,7 @@ class GatedLoop:
         self.received = 0  # distinct setpoints; the policy publishes one status with each
         self.duplicates: list[bool] = []  # per repeated answer: identical to the first?
         ros.inbox("setpoint", PointStamped, self._keep)
-        self.statuses = ros.inbox("policy_status", DiagnosticStatus)
+        self.statuses = ros.inbox("diagnostics", DiagnosticArray)
         self.markers = ros.inbox("zone_markers", MarkerArray)
         self.gate = ros.publisher("setpoint", PointStamped, GATED_SETPOINT)
         self.zones = ros.publisher("zones", PolygonInstanceStamped)
@@ -213,6 +214,9 @@ def test_zone_from_another_process_obeyed_refused_and_removed(
     assert max(depth(m) for m in after_refusal) < 0.0
     statuses = loop.statuses[statuses_before:]
     assert len(statuses) >= 12 and {values(s)["zones"] for s in statuses} == {"1"}
+    warned = [s.status[0] for s in statuses if s.status[0].level == DiagnosticStatus.WARN]
+    assert warned and "refused" in warned[0].message  # then OK again: nothing new refused
+    assert statuses[-1].status[0].level == DiagnosticStatus.OK
     assert len(loop.markers) == markers_before  # the zones in force never changed
     assert policy.poll() is None and "Traceback" not in policy_log.read_text()
 
@@ -248,7 +252,7 @@ def test_realtime_a_zone_mid_chunk_gets_a_safe_setpoint_before_the_next_tick(
     arrivals: list[tuple[float, np.ndarray]] = []
     ros.inbox("setpoint", PointStamped, lambda m: arrivals.append(
         (time.monotonic(), np.array([m.point.x, m.point.y]))))
-    statuses = ros.inbox("policy_status", DiagnosticStatus)
+    statuses = ros.inbox("diagnostics", DiagnosticArray)
     plans = ros.inbox("plan", PathMsg)
     zones = ros.publisher("zones", PolygonInstanceStamped)
     keypoints_pub = ros.publisher("keypoints", PolygonStamped)

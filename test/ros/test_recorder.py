@@ -7,7 +7,7 @@ import signal
 from pathlib import Path
 
 import yaml
-from diagnostic_msgs.msg import DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PolygonInstanceStamped
 from nav_msgs.msg import Path as PathMsg
 from ros_helpers import SEED, stamp_ns
@@ -36,7 +36,7 @@ def test_recorder_writes_every_topic_and_metadata(ros, sim, processes, tmp_path)
     metadata_file.write_text(json.dumps({"scenario": "two_zones", "result": None}))
     recorder, log = processes.start("recorder",
                                     output=bag, metadata_file=metadata_file)
-    published = {"plan": PathMsg, "policy_status": DiagnosticStatus,
+    published = {"plan": PathMsg, "diagnostics": DiagnosticArray,
                  "zone_markers": MarkerArray, "zones": PolygonInstanceStamped}
     publishers = {topic: ros.publisher(topic, msg_type) for topic, msg_type in published.items()}
 
@@ -56,7 +56,8 @@ def test_recorder_writes_every_topic_and_metadata(ros, sim, processes, tmp_path)
     new = sim.stamps()[len(before):]
     for i in range(2):
         publishers["plan"].publish(PathMsg())
-        publishers["policy_status"].publish(DiagnosticStatus(name="policy", message=str(i)))
+        publishers["diagnostics"].publish(
+            DiagnosticArray(status=[DiagnosticStatus(name="policy", message=str(i))]))
         publishers["zone_markers"].publish(MarkerArray())
         zone = PolygonInstanceStamped()
         zone.polygon.id = 40 + i

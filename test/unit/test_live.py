@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -67,3 +68,18 @@ def test_caps_refuse_with_a_reason_and_keep_the_zones_in_force() -> None:
     assert outcome.applied == 0 and not outcome.changed and live.ids == [1, 2]
     outcome = live.apply([(1, []), (3, rectangle(4, 0, 5, 1))], now=0.0)  # room made first
     assert outcome.refused == [] and live.ids == [2, 3]
+
+
+def test_lifetime_counts_from_the_stamp_so_a_replayed_stale_zone_stays_gone() -> None:
+    live = LiveZones()
+    square = rectangle(10, 10, 20, 20)
+    outcome = live.apply([(1, square, 95.0), (2, square, 99.0), (3, square, None)], now=100.0,
+                         lifetime=2.0)
+    assert live.ids == [2, 3] and outcome.applied == 2 and outcome.stale == 1
+    assert live.expire(101.5) == [2]  # published at 99: gone at 101, not at 102
+    assert live.expire(102.5) == [3]  # no stamp: counted from its arrival at 100
+    live.apply([(4, square, 500.0)], now=100.0, lifetime=2.0)  # a stamp from the future
+    assert live.expire(102.5) == [4]  # ... counts as now, so it cannot outlive its lifetime
+    assert set(live.outlines()) == set()
+    live.apply([(5, square)], now=100.0)
+    np.testing.assert_array_equal(live.outlines()[5], square)

@@ -1,0 +1,130 @@
+"""ROS names and zones the ROS way: two namespaced stacks side by side in one domain, zones from
+volatile and transient-local publishers, and a restarted policy that neither loses a zone in
+force nor revives one whose lifetime has passed."""
+
+from __future__ import annotations
+
+import time
+
+from geometry_msgs.msg import PolygonInstanceStamped
+from rclpy.qos import DurabilityPolicy
+from ros_helpers import DISCOVERY_S
+from visualization_msgs.msg import MarkerArray
+
+from constrained_diffusion_ros.zones import rectangle
+from msg_schemas import TOPICS, qos_profile
+from msg_schemas.conversions import zone_message
+
+ROBOTS = ("/robot1", "/robot2")
+SQUARE = rectangle(100, 100, 140, 140)
+
+
+def zone_publisher(ros, namespace: str = "/pusht", durability=DurabilityPolicy.TRANSIENT_LOCAL):
+    profile = qos_profile(TOPICS["zones"], "publisher")
+    profile.durability = durability
+    return ros.node.create_publisher(PolygonInstanceStamped,
+                                     TOPICS["zones"].resolved(namespace), profile)
+
+
+def markers_of(ros, namespace: str = "/pusht") -> list[MarkerArray]:
+    received: list[MarkerArray] = []
+    ros.node.create_subscription(MarkerArray, TOPICS["zone_markers"].resolved(namespace),
+                                 received.append, qos_profile(TOPICS["zone_markers"]))
+    return received
+
+
+def shown(markers: list[MarkerArray]) -> list[int] | None:
+    """Zone ids in the latest markers (None before any)."""
+    if not markers:
+        return None
+    return sorted(m.id for m in markers[-1].markers if m.action == m.ADD)
+
+
+def publish(ros, publisher, zone_id: int, offset: float = 0.0) -> None:
+    stamp = ros.node.get_clock().now().to_msg()
+    publisher.publish(zone_message(zone_id, SQUARE + offset, stamp))
+
+
+def test_two_namespaced_stacks_side_by_side_each_obey_only_their_own_zones(
+        ros, processes, tiny_model, configurations_file) -> None:
+    for namespace in ROBOTS:
+        name = namespace.strip("/")
+        processes.start(f"sim_{name}", "sim_node", remap={"__ns": namespace}, autostart=False)
+        processes.start(f"policy_{name}", "policy_node", remap={"__ns": namespace},
+                        model=tiny_model, configurations_file=configurations_file,
+                        configuration="fast_project")
+    markers = {namespace: markers_of(ros, namespace) for namespace in ROBOTS}
+    zones = zone_publisher(ros, "/robot1")
+    graph = ros.node
+
+    def stacks_up() -> bool:
+        names = dict(graph.get_service_names_and_types())
+        return zones.get_subscription_count() == 2 and all(
+            graph.count_publishers(TOPICS["pusher"].resolved(ns)) == 1
+            and graph.count_subscribers(TOPICS["pusher"].resolved(ns)) == 1
+            and graph.count_subscribers(TOPICS["setpoint"].resolved(ns)) == 1
+            and TOPICS["zones"].resolved(ns) in dict(graph.get_topic_names_and_types())
+            and f"{ns}/reset" in names and f"{ns}/clear_zones" in names for ns in ROBOTS)
+
+    def graph_state() -> str:
+        return str([(ns, graph.count_publishers(TOPICS["pusher"].resolved(ns)),
+                     graph.count_subscribers(TOPICS["pusher"].resolved(ns)),
+                     graph.count_subscribers(TOPICS["setpoint"].resolved(ns))) for ns in ROBOTS]
+                   + [zones.get_subscription_count(), graph.get_service_names_and_types()])
+
+    assert ros.spin_until(stacks_up, 3 * DISCOVERY_S), graph_state() + processes.logs()
+    # Each policy listens to its own simulator only (one publisher per pusher topic, one
+    # subscriber), and nothing is left in the default namespace.
+    assert graph.count_publishers(TOPICS["pusher"].resolved()) == 0
+    publish(ros, zones, 5)
+    assert ros.spin_until(lambda: shown(markers["/robot1"]) == [5])
+    ros.spin_for(1.0)
+    assert shown(markers["/robot2"]) in (None, [])
+    assert {m.ns for m in markers["/robot1"][-1].markers} == {"/robot1/zones"}
+
+
+def test_zones_from_a_volatile_and_a_transient_local_publisher_are_both_obeyed(
+        ros, processes, tiny_model, configurations_file) -> None:
+    processes.start("policy_node", model=tiny_model, configurations_file=configurations_file,
+                    configuration="fast_project")
+    markers = markers_of(ros)
+    volatile = zone_publisher(ros, durability=DurabilityPolicy.VOLATILE)
+    latched = zone_publisher(ros)
+    assert ros.spin_until(lambda: volatile.get_subscription_count() == 1
+                          and latched.get_subscription_count() == 2), processes.logs()
+    publish(ros, volatile, 1)
+    publish(ros, latched, 2, offset=100.0)
+    assert ros.spin_until(lambda: shown(markers) == [1, 2]), shown(markers)
+
+
+def test_a_restarted_policy_keeps_the_zones_in_force_and_not_the_expired_ones(
+        ros, processes, tiny_model, configurations_file) -> None:
+    """zone_lifetime 2 (an integer, taken for the double): zone 7 is published once and
+    expires; zone 8 is re-published and stays. The restarted policy gets both from the
+    latched history and shows only 8: 7's stamp is older than its lifetime."""
+    markers = markers_of(ros)
+    zones = zone_publisher(ros)
+
+    def start() -> None:
+        processes.start("policy_node", model=tiny_model, configurations_file=configurations_file,
+                        configuration="fast_project", zone_lifetime=2)
+
+    def keep_8_until(condition, timeout: float = 20.0) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            publish(ros, zones, 8, offset=100.0)
+            if ros.spin_until(condition, 0.5):
+                return True
+        return False
+
+    start()
+    assert ros.spin_until(lambda: zones.get_subscription_count() == 2), processes.logs()
+    publish(ros, zones, 7)
+    assert keep_8_until(lambda: shown(markers) == [7, 8]), processes.logs()
+    assert keep_8_until(lambda: shown(markers) == [8]), "zone 7 never expired"
+    assert processes.stop("policy_node") == 0
+    before = len(markers)
+    start()
+    assert keep_8_until(lambda: len(markers) > before and shown(markers) == [8]), \
+        processes.logs()
+    assert all(7 not in (shown([m]) or []) for m in markers[before:])  # never revived

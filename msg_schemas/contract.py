@@ -20,7 +20,7 @@ NAMESPACE = "pusht"  # every node's namespace unless `__ns` says otherwise
 class Endpoint:
     name: str
     type: str  # ROS interface type, e.g. "geometry_msgs/msg/PointStamped"
-    qos: str  # "sensor" or "latched" (late joiners get the zones in force): see qos_profile
+    qos: str  # "sensor", "latched" (late joiners get the zones in force) or "clock"
     publisher: str
     subscribers: tuple[str, ...]
     units: str
@@ -61,6 +61,10 @@ TOPICS: dict[str, Endpoint] = {e.key: e for e in (
              "Restricted zones keyed by id: add or replace; an empty polygon removes the id"),
     Endpoint("zone_markers", "visualization_msgs/msg/MarkerArray", "latched",
              "policy_node", ("recorder",), "px, frame workspace", "Active zones for viewers"),
+    Endpoint("/clock", "rosgraph_msgs/msg/Clock", "clock", "sim_node",
+             ("policy_node", "zone_publisher", "recorder"), "simulated time = control step / 10",
+             "Simulated time with each observation: nodes started with use_sim_time run on it "
+             "(absolute, as ROS expects)"),
     Endpoint("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", "sensor", "policy_node",
              ("recorder",), "key/value strings",
              "Health (OK / WARN / ERROR) and counters: plans, planning time, zones in force by "
@@ -81,14 +85,15 @@ def qos_profile(endpoint: Endpoint, role: str = "subscriber"):
     All reliable. Publishers keep their recent history (transient local) so that a recorder
     whose match arrives late still gets the first messages of a trial; live subscribers of
     sensor topics ask for no history (volatile), so a simulator never acts on stale setpoints;
-    latched topics (zones) give every late joiner the zones in force.
+    latched topics (zones) give every late joiner the zones in force. The clock keeps no
+    history at all (a late joiner must not see time run backwards), for every role.
     """
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
     if role not in ("publisher", "subscriber", "recorder"):
         raise ValueError(f"unknown QoS role {role!r}")
     latched = endpoint.qos == "latched"
-    keeps_history = latched or role != "subscriber"
+    keeps_history = endpoint.qos != "clock" and (latched or role != "subscriber")
     # Latched (zones): deep enough that a burst of updates waits for the callback instead of
     # being overwritten, and a late joiner gets every id's last message.
     depth = 10_000 if latched else (1000 if keeps_history else 10)

@@ -5,8 +5,9 @@ exactly one control step, so a trial is deterministic however slow the policy is
 with any other stamp (duplicates of answers already used) are dropped. `realtime`: a timer
 steps at `rate_hz` with the latest setpoint, as a real robot would, holding the last one.
 
-Every observation is stamped with simulated time (control step * 0.1 s) and published as four
-messages with the same stamp: block pose, score, keypoints, then the pusher, last, because the
+Every observation is stamped with simulated time (control step * 0.1 s), which also goes out on
+`/clock` (nodes started with `use_sim_time:=true` run on it), and published as four messages
+with the same stamp: block pose, score, keypoints, then the pusher, last, because the
 policy node acts on it. A reset (service `reset`, to the `seed` parameter) returns the
 stamp to 0. With `autostart` false the sim publishes nothing and ignores setpoints until the
 first reset, so a trial can wait until every node is up before the scene starts.
@@ -25,7 +26,10 @@ import sys
 import time
 
 from geometry_msgs.msg import PointStamped, PolygonStamped, PoseStamped
+from rclpy.clock import Clock as Clock_
+from rclpy.clock import ClockType
 from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
@@ -99,14 +103,17 @@ class SimNode(Node):
         self.score_pub = publisher(Float64, "score")
         self.keypoints_pub = publisher(PolygonStamped, "keypoints")
         self.pusher_pub = publisher(PointStamped, "pusher")
+        self.clock_pub = publisher(Clock, "clock")
         setpoint = TOPICS["setpoint"]
         self.create_subscription(PointStamped, setpoint.name, self.on_setpoint,
                                  qos_profile(setpoint))
         self.create_service(Trigger, SERVICES["reset"].name, self.on_reset)
+        # The sim is the source of /clock: it steps on the steady clock even with use_sim_time.
+        steady = Clock_(clock_type=ClockType.STEADY_TIME)
         if self.mode == "realtime":
-            self.create_timer(1.0 / rate_hz, self.on_tick)
+            self.create_timer(1.0 / rate_hz, self.on_tick, clock=steady)
         else:
-            self.create_timer(REPUBLISH_PERIOD_S / 5, self.on_idle)
+            self.create_timer(REPUBLISH_PERIOD_S / 5, self.on_idle, clock=steady)
 
         seed = self.get_parameter("seed").value
         if values["autostart"]:
@@ -139,6 +146,7 @@ class SimNode(Node):
     def publish_observation(self) -> None:
         """Block pose, score, keypoints, then the pusher, all with one simulated-time stamp."""
         stamp = stamp_of_step(self.step_count, CONTROL_HZ)
+        self.clock_pub.publish(Clock(clock=stamp))
         self.pose_pub.publish(pose2d_message(self.sim.block_pose, stamp))
         self.score_pub.publish(Float64(data=self.sim.score()))
         self.keypoints_pub.publish(polygon_message(self.sim.keypoints(), stamp))

@@ -50,7 +50,7 @@ setup(
         # Restricted areas a scenario can name instead of "package.module:Class"; other
         # packages add theirs to the same group (zones/plugins.py).
         f"{PACKAGE}.restricted_areas": [
-            f"camera_zones = {PACKAGE}.zones.camera:CameraZones",
+            f"camera_zones = {PACKAGE}.examples.camera:CameraZones",
         ],
     },
 )

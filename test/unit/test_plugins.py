@@ -1,5 +1,5 @@
 """Plug-in restricted areas: `load_area` by module path and by entry point, its one-line errors,
-and the worked example, zones drawn in a camera image (`zones.camera.CameraZones`)."""
+and the worked example, zones drawn in a camera image (`examples.camera.CameraZones`)."""
 
 from __future__ import annotations
 
@@ -16,12 +16,12 @@ import torch
 import yaml
 
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
+from constrained_diffusion_ros.examples.camera import CameraZones, apply_homography
 from constrained_diffusion_ros.zones import RestrictedArea, ZoneSet
-from constrained_diffusion_ros.zones.camera import CameraZones, apply_homography
 from constrained_diffusion_ros.zones.plugins import ENTRY_POINT_GROUP, load_area
 
 REPO = Path(__file__).resolve().parents[2]
-CAMERA = "constrained_diffusion_ros.zones.camera:CameraZones"
+CAMERA = "constrained_diffusion_ros.examples.camera:CameraZones"
 # The shipped camera's image of the workspace corners (config/camera_zones.yaml).
 CORNERS = np.array([[0, 0], [512, 0], [512, 512], [0, 512]], dtype=float)
 CORNERS_IN_IMAGE = np.array([[184.484, 146.033], [499.540, 162.359], [575.045, 425.581],
@@ -119,11 +119,11 @@ def test_load_area_by_module_path_builds_the_class_with_the_parameters() -> None
 
 @pytest.mark.parametrize(("spec", "parameters", "message"), [
     ("no_such_package.zones:Area", {}, "cannot import 'no_such_package.zones'"),
-    ("constrained_diffusion_ros.zones.camera:NoSuchArea", {}, "has no attribute 'NoSuchArea'"),
-    ("constrained_diffusion_ros.zones.camera:", {}, "expected 'package.module:Class'"),
+    ("constrained_diffusion_ros.examples.camera:NoSuchArea", {}, "has no attribute 'NoSuchArea'"),
+    ("constrained_diffusion_ros.examples.camera:", {}, "expected 'package.module:Class'"),
     ("constrained_diffusion_ros.zones.geometry:rectangle",
      {"x_min": 0, "y_min": 0, "x_max": 1, "y_max": 1}, "built a ndarray, not a RestrictedArea"),
-    ("constrained_diffusion_ros.zones.camera:WORKSPACE_CENTRE", {}, "tuple is not callable"),
+    ("constrained_diffusion_ros.examples.camera:WORKSPACE_CENTRE", {}, "tuple is not callable"),
     (CAMERA, {"config_file": "camera_zones.yaml", "fov": 60}, "bad parameters"),
     (CAMERA, {}, "bad parameters"),
     (CAMERA, {"config_file": "/nonexistent/camera.yaml"}, "cannot be built .FileNotFoundError"),
@@ -150,7 +150,7 @@ def test_load_area_by_entry_point_name(tmp_path: Path, monkeypatch: pytest.Monke
     """The entry point setup.py declares, installed as a distribution's metadata on sys.path
     (as pip or colcon would install it), found by its name."""
     declared = setup_entry_points()[ENTRY_POINT_GROUP]
-    assert "camera_zones = constrained_diffusion_ros.zones.camera:CameraZones" in declared
+    assert "camera_zones = constrained_diffusion_ros.examples.camera:CameraZones" in declared
     info = tmp_path / "camera_zones_plugin-1.0.dist-info"
     info.mkdir()
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: camera-zones-plugin\n"

@@ -15,10 +15,10 @@ from constrained_diffusion_ros.evaluation.configurations import load_evaluated
 from constrained_diffusion_ros.evaluation.rollout import RolloutLog
 from constrained_diffusion_ros.evaluation.runner import cell_metrics, evaluate_configurations
 from constrained_diffusion_ros.evaluation.scenarios import Scenario, load_scenarios
+from constrained_diffusion_ros.examples.camera import CameraZones
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.zones import ZoneSet
-from constrained_diffusion_ros.zones.camera import CameraZones
 
 
 @pytest.fixture(scope="module")
@@ -85,8 +85,8 @@ def test_a_grid_from_a_pgm_file_relative_to_the_scenarios_file(tmp_path: Path) -
      "no keep-out cell inside the workspace"),
     ("zones: [{grid: {file: missing.pgm, resolution: 4}}]", "missing.pgm"),
     ('plugin: {class: "no_such_package.areas:Area"}', "cannot import 'no_such_package.areas'"),
-    ('plugin: {class: "constrained_diffusion_ros.zones.camera:CameraZones"}', "bad parameters"),
-    ("plugin: {module: constrained_diffusion_ros.zones.camera}", "plugin is {class"),
+    ('plugin: {class: "constrained_diffusion_ros.examples.camera:CameraZones"}', "bad parameters"),
+    ("plugin: {module: constrained_diffusion_ros.examples.camera}", "plugin is {class"),
     ('{plugin: {class: "x:Y"}, zones: [{square: {center: [1, 1], side: 1}}]}', "both zones"),
 ])
 def test_malformed_grid_and_plugin_scenarios_are_refused_naming_the_scenario(

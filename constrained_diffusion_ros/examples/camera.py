@@ -8,8 +8,9 @@ the polygon stays on the table's side of the horizon line (where w = 0 and point
 infinity); beyond it an edge would wrap through infinity, so such a zone is refused. The mapped
 polygons become an exact `ZoneSet`, which answers every query.
 
-Loaded by a scenario as a plug-in (`zones.plugins.load_area`):
-`plugin: {class: "constrained_diffusion_ros.zones.camera:CameraZones",
+It lives outside the ROS-free core, as a user's own package would, and uses only the public
+`zones` API. Loaded by a scenario as a plug-in (`zones.plugins.load_area`):
+`plugin: {class: "constrained_diffusion_ros.examples.camera:CameraZones",
 parameters: {config_file: camera_zones.yaml}}`, or by its entry point name `camera_zones`.
 """
 
@@ -22,8 +23,8 @@ import yaml
 from numpy.typing import ArrayLike
 from torch import Tensor
 
-from constrained_diffusion_ros.zones.area import Bounds, RestrictedArea
-from constrained_diffusion_ros.zones.geometry import ZoneSet, validate_polygon
+from constrained_diffusion_ros.paths import config_dir
+from constrained_diffusion_ros.zones import Bounds, RestrictedArea, ZoneSet, validate_polygon
 
 WORKSPACE_CENTRE = (256.0, 256.0)  # PushT's 512 x 512 workspace: a point every camera sees
 HORIZON_MARGIN = 1e-6  # w relative to w at the table point: closer to the horizon is refused
@@ -49,8 +50,6 @@ class CameraZones(RestrictedArea):
     def __init__(self, config_file: str | Path) -> None:
         path = Path(config_file)
         if not path.is_absolute():
-            from constrained_diffusion_ros.paths import config_dir
-
             path = config_dir() / path
         document = yaml.safe_load(path.read_text())
         if not isinstance(document, dict):

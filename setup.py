@@ -47,5 +47,10 @@ setup(
             f"latency = {PACKAGE}.evaluation.latency:main",
             f"benchmark_policy = {PACKAGE}.evaluation.benchmark:main",
         ],
+        # Restricted areas a scenario can name instead of "package.module:Class"; other
+        # packages add theirs to the same group (zones/plugins.py).
+        f"{PACKAGE}.restricted_areas": [
+            f"camera_zones = {PACKAGE}.examples.camera:CameraZones",
+        ],
     },
 )

@@ -68,6 +68,10 @@ def run_trial(args: argparse.Namespace) -> dict:
     scenario = scenarios.get(args.scenario) if args.scenario != "none" else None
     if args.scenario != "none" and scenario is None:
         raise ValueError(f"unknown scenario {args.scenario!r}; known: {', '.join(scenarios)}")
+    if scenario is not None and not scenario.polygons:
+        raise ValueError(f"scenario {args.scenario!r} is a plug-in area without polygons; the "
+                         "nodes take zones as polygons on the zones topic, so only `evaluate` "
+                         "can run it")
     output = Path(args.output or f"trials/{args.scenario}_{args.configuration}_{args.seed}")
     if output.exists():
         raise ValueError(f"{output} exists already; choose another --output (trials are never "

@@ -1,6 +1,7 @@
 """Restricted zones: the area protocol every check implements (`area`), exact polygon unions
-(`geometry`), different zones per episode of a batch (`episodes`), and the live id-keyed set a
-node updates from messages (`live`)."""
+(`geometry`), different zones per episode of a batch (`episodes`), the live id-keyed set a
+node updates from messages (`live`), keep-out grids as exact polygons (`grid`), and areas
+from other packages (`plugins`; `constrained_diffusion_ros.examples.camera` is one)."""
 
 from constrained_diffusion_ros.zones.area import (
     AreaUnion,
@@ -16,7 +17,9 @@ from constrained_diffusion_ros.zones.geometry import (
     rectangle,
     validate_polygon,
 )
+from constrained_diffusion_ros.zones.grid import grid_polygons, rasterize
 from constrained_diffusion_ros.zones.live import LiveZones, ZoneId
+from constrained_diffusion_ros.zones.plugins import load_area
 
 __all__ = [
     "QUAD_SEGS",
@@ -29,6 +32,9 @@ __all__ = [
     "RestrictedArea",
     "ZoneId",
     "ZoneSet",
+    "grid_polygons",
+    "load_area",
+    "rasterize",
     "rectangle",
     "validate_polygon",
 ]

@@ -20,7 +20,7 @@ NAMESPACE = "pusht"  # every node's namespace unless `__ns` says otherwise
 class Endpoint:
     name: str
     type: str  # ROS interface type, e.g. "geometry_msgs/msg/PointStamped"
-    qos: str  # "sensor", "latched" (late joiners get the zones in force) or "clock"
+    qos: str  # "sensor", "latched" (late joiners get the zones in force), "map" or "clock"
     publisher: str
     subscribers: tuple[str, ...]
     units: str
@@ -59,6 +59,10 @@ TOPICS: dict[str, Endpoint] = {e.key: e for e in (
     Endpoint("zones", "geometry_msgs/msg/PolygonInstanceStamped", "latched",
              "zone_publisher", ("policy_node", "recorder"), "px, frame workspace",
              "Restricted zones keyed by id: add or replace; an empty polygon removes the id"),
+    Endpoint("keepout_mask", "nav_msgs/msg/OccupancyGrid", "map", "zone_publisher",
+             ("policy_node", "recorder"), "cells of `resolution` px from `origin`, frame workspace",
+             "A keep-out mask (nav2 keep-out filter convention: cells >= keepout_threshold are "
+             "restricted, -1 free); replaces the previous mask"),
     Endpoint("zone_markers", "visualization_msgs/msg/MarkerArray", "latched",
              "policy_node", ("recorder",), "px, frame workspace", "Active zones for viewers"),
     Endpoint("/clock", "rosgraph_msgs/msg/Clock", "clock", "sim_node",
@@ -86,17 +90,19 @@ def qos_profile(endpoint: Endpoint, role: str = "subscriber"):
     whose match arrives late still gets the first messages of a trial; live subscribers of
     sensor topics ask for no history (volatile), so a simulator never acts on stale setpoints;
     latched topics (zones) give every late joiner the zones in force. The clock keeps no
-    history at all (a late joiner must not see time run backwards), for every role.
+    history at all (a late joiner must not see time run backwards), for every role; a map (a
+keep-out mask) keeps its latest message only, as nav2's map server.
     """
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
     if role not in ("publisher", "subscriber", "recorder"):
         raise ValueError(f"unknown QoS role {role!r}")
-    latched = endpoint.qos == "latched"
+    latched = endpoint.qos in ("latched", "map")
     keeps_history = endpoint.qos != "clock" and (latched or role != "subscriber")
     # Latched (zones): deep enough that a burst of updates waits for the callback instead of
     # being overwritten, and a late joiner gets every id's last message.
-    depth = 10_000 if latched else (1000 if keeps_history else 10)
+    depths = {"map": 1, "latched": 10_000}
+    depth = depths.get(endpoint.qos, 1000 if keeps_history else 10)
     return QoSProfile(
         history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
         durability=DurabilityPolicy.TRANSIENT_LOCAL if keeps_history else DurabilityPolicy.VOLATILE)

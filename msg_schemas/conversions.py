@@ -11,6 +11,7 @@ nanoseconds, so a stamp names its step without rounding doubt.
 from __future__ import annotations
 
 import math
+import zlib
 from collections.abc import Iterable, Mapping
 
 import numpy as np
@@ -139,8 +140,8 @@ def zone_markers(outlines: Mapping[int, np.ndarray], stamp, namespace: str = "zo
 
     markers = MarkerArray(markers=[Marker(action=Marker.DELETEALL, ns=namespace)])
     for zone_id, polygon in outlines.items():
-        marker = _header(Marker(type=Marker.LINE_STRIP, action=Marker.ADD, id=int(zone_id),
-                                ns=namespace), stamp)
+        marker = _header(Marker(type=Marker.LINE_STRIP, action=Marker.ADD,
+                                id=marker_id(zone_id), ns=namespace), stamp)
         marker.scale.x = 2.0
         marker.color.r, marker.color.a = 1.0, 1.0
         marker.pose.orientation.w = 1.0
@@ -148,6 +149,27 @@ def zone_markers(outlines: Mapping[int, np.ndarray], stamp, namespace: str = "zo
         marker.points = [Point(x=float(x), y=float(y), z=0.0) for x, y in closed]
         markers.markers.append(marker)
     return markers
+
+
+def marker_id(zone_id: int | str) -> int:
+    """A zone's marker id: the zone id itself, or for a named zone ("keepout/3") a stable
+    31-bit hash of its name."""
+    if isinstance(zone_id, int):
+        return zone_id
+    return zlib.crc32(str(zone_id).encode()) & 0x7FFFFFFF
+
+
+def occupancy_grid(values: np.ndarray, resolution: float, origin: Iterable[float], stamp):
+    """A keep-out mask (height, width) of int8 as a nav_msgs/OccupancyGrid, row 0 first."""
+    from nav_msgs.msg import OccupancyGrid
+
+    msg = _header(OccupancyGrid(), stamp)
+    height, width = values.shape
+    msg.info.resolution, msg.info.width, msg.info.height = float(resolution), width, height
+    msg.info.origin.position.x, msg.info.origin.position.y = (float(v) for v in origin)
+    msg.info.origin.orientation.w = 1.0
+    msg.data = np.asarray(values, dtype=np.int8).ravel().tolist()
+    return msg
 
 
 def zones_shown(markers) -> int:

@@ -8,6 +8,7 @@ times over. Processes stop like Ctrl-C (SIGINT), and are killed if they do not.
 
 from __future__ import annotations
 
+import json
 import os
 import random
 import signal
@@ -30,9 +31,12 @@ def random_domain_id() -> int:
 
 
 def parameter_text(value: object) -> str:
-    """A value as `--ros-args -p name:=value` wants it."""
+    """A value as `--ros-args -p name:=value` wants it (YAML): text quoted, so that a name
+    like "100" or "{a: 1}" stays a string."""
     if isinstance(value, bool):
         return "true" if value else "false"
+    if isinstance(value, str | os.PathLike):
+        return json.dumps(str(value))
     return str(value)
 
 

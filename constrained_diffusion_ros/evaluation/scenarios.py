@@ -117,6 +117,7 @@ class Scenario:
     motion_offset: tuple[float, float] | None = None  # total translation (px)
     motion_steps: int = 1
     area: RestrictedArea | None = None  # a plug-in area (static), answering for the zones
+    plugin: dict | None = None  # its spec {class, parameters}, for a node to load it too
 
     @property
     def moving(self) -> bool:
@@ -177,5 +178,6 @@ def load_scenarios(path: str | Path | None = None) -> dict[str, Scenario]:
             name=name, label=str(entry.get("label", name)), polygons=polygons,
             paper=bool(entry.get("paper", False)),
             motion_offset=tuple(map(float, motion["offset"])) if motion else None,
-            motion_steps=int(motion["steps"]) if motion else 1, area=area)
+            motion_steps=int(motion["steps"]) if motion else 1, area=area,
+            plugin=dict(plugin) if plugin else None)
     return scenarios

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_domain_id
 from constrained_diffusion_ros.evaluation.rollout import RolloutLog
@@ -46,6 +47,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--output", default=None,
                         help="trial directory (default trials/<scenario>_<configuration>_<seed>);"
                              " must not exist yet")
+    parser.add_argument("--scenarios-file", default=str(config_dir() / "scenarios.yaml"),
+                        help="YAML of scenarios (zones, keep-out grids or plug-in checks)")
+    parser.add_argument("--keepout-grid", type=float, default=0.0, metavar="PX",
+                        help="publish the scenario as a keep-out mask (nav2's convention) with "
+                             "cells PX wide instead of as polygon zones; 0: polygons")
     parser.add_argument("--timeout", type=float, default=600.0,
                         help="seconds before the trial gives up")
     parser.add_argument("--domain-id", type=int, default=None,
@@ -64,14 +70,12 @@ def run_trial(args: argparse.Namespace) -> dict:
 
     from msg_schemas import qos_profile
 
-    scenarios = load_scenarios()
+    scenarios = load_scenarios(args.scenarios_file)
     scenario = scenarios.get(args.scenario) if args.scenario != "none" else None
     if args.scenario != "none" and scenario is None:
         raise ValueError(f"unknown scenario {args.scenario!r}; known: {', '.join(scenarios)}")
-    if scenario is not None and not scenario.polygons:
-        raise ValueError(f"scenario {args.scenario!r} is a plug-in area without polygons; the "
-                         "nodes take zones as polygons on the zones topic, so only `evaluate` "
-                         "can run it")
+    if args.keepout_grid and (scenario is None or scenario.plugin):
+        raise ValueError("--keepout-grid needs a scenario of zones (not a plug-in)")
     output = Path(args.output or f"trials/{args.scenario}_{args.configuration}_{args.seed}")
     if output.exists():
         raise ValueError(f"{output} exists already; choose another --output (trials are never "
@@ -114,11 +118,19 @@ def run_trial(args: argparse.Namespace) -> dict:
         children.start("recorder", output=output / "bag", metadata_file=metadata_file)
         children.start("sim_node", seed=args.seed, mode="lockstep", max_steps=args.steps,
                        autostart=False)
-        if scenario is not None:
-            children.start("zone_publisher", scenario=args.scenario)
+        plug_in, zone_topic = {}, None  # a plug-in check goes to the policy, zones to topics
+        if scenario is not None and scenario.plugin:
+            plug_in = {"restricted_area": scenario.plugin["class"],
+                       "restricted_area_parameters": yaml.safe_dump(
+                           scenario.plugin.get("parameters") or {}, default_flow_style=True)}
+        elif scenario is not None:
+            zone_topic = TOPICS["keepout_mask" if args.keepout_grid else "zones"].name
+            children.start("zone_publisher", scenario=args.scenario,
+                           scenarios_file=args.scenarios_file,
+                           keepout_resolution=args.keepout_grid)
         children.start("policy_node", threads=POLICY_THREADS, model=args.model,
                        configuration=args.configuration,
-                       configurations_file=args.configurations_file)
+                       configurations_file=args.configurations_file, **plug_in)
 
         def spin_until(condition, what: str) -> None:
             while not condition():
@@ -131,18 +143,22 @@ def run_trial(args: argparse.Namespace) -> dict:
 
         def discovered() -> bool:
             setpoint, pusher = TOPICS["setpoint"].name, TOPICS["pusher"].name
-            zones = TOPICS["zones"].name
             ready = (node.count_publishers(setpoint) >= 1 and node.count_subscribers(setpoint) >= 3
                      and node.count_subscribers(pusher) >= 3 and reset.service_is_ready())
-            if scenario is not None:
-                ready &= node.count_publishers(zones) >= 1 and node.count_subscribers(zones) >= 2
+            if zone_topic is not None:
+                ready &= node.count_publishers(zone_topic) >= 1 and \
+                    node.count_subscribers(zone_topic) >= 2
             return ready
 
         spin_until(discovered, "the nodes to discover each other")
         if scenario is not None:  # the policy echoes the zones in force as markers, one each
-            expected = len(scenario.polygons_at(0))
-            spin_until(lambda: zones_in_force[-1] == expected if zones_in_force else False,
-                       "the policy to hold the scenario's zones")
+            expected = len(scenario.polygons_at(0))  # (a mask's pieces: at least one)
+
+            def holds_zones() -> bool:
+                shown = zones_in_force[-1] if zones_in_force else 0
+                return shown >= 1 if args.keepout_grid else shown == expected
+
+            spin_until(holds_zones, "the policy to hold the scenario's zones")
         future = reset.call_async(Trigger.Request())
         spin_until(future.done, "the simulator's reset")
         def complete() -> bool:  # topics arrive in no fixed order: wait for every one

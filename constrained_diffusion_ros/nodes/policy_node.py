@@ -24,8 +24,10 @@ from collections import OrderedDict
 
 import numpy as np
 import torch
+import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PointStamped, PolygonInstanceStamped, PolygonStamped
+from nav_msgs.msg import OccupancyGrid
 from nav_msgs.msg import Path as PathMsg
 from rcl_interfaces.msg import SetParametersResult
 from rclpy._rclpy_pybind11 import RCLError
@@ -43,12 +45,15 @@ from constrained_diffusion_ros.planning.realtime import ControlClock, RealtimeCo
 from constrained_diffusion_ros.planning.robot import RobotModel
 from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
+from constrained_diffusion_ros.zones.area import RestrictedArea
+from constrained_diffusion_ros.zones.grid import DEFAULT_THRESHOLD, grid_polygons
 from constrained_diffusion_ros.zones.live import (
     DEFAULT_MAX_VERTICES,
     DEFAULT_MAX_ZONES,
     BatchOutcome,
     LiveZones,
 )
+from constrained_diffusion_ros.zones.plugins import load_area
 from msg_schemas import FRAME_ID, NAMESPACE, SERVICES, TOPICS, qos_profile
 from msg_schemas.conversions import (
     path_message,
@@ -96,6 +101,13 @@ PARAMETERS = (
           read_only=True, low=1),
     Param("max_vertices", DEFAULT_MAX_VERTICES, "vertices per zone at most", read_only=True,
           low=3),
+    Param("keepout_threshold", DEFAULT_THRESHOLD, "keep-out mask cells at or above it are "
+          "restricted (nav2's occupied threshold, 0..100)", low=1, high=100),
+    Param("restricted_area", "", "a plug-in check always in force: 'package.module:Class' or "
+          "an entry point of group constrained_diffusion_ros.restricted_areas; empty: none",
+          read_only=True),
+    Param("restricted_area_parameters", "", "its keyword arguments, a YAML mapping, e.g. "
+          "'{config_file: camera_zones.yaml}'", read_only=True),
     # What the planner knows of the robot (PushT's by default), read at start.
     Param("robot.pusher_radius", float(PUSHT_ROBOT.pusher_radius),
           "px; zones grown by it keep the pusher's body out", read_only=True, low=0.0),
@@ -110,6 +122,20 @@ PARAMETERS = (
     Param("robot.physics_hz", float(PUSHT_ROBOT.physics_hz), "PD integration rate the shield "
           "predicts the pusher with", read_only=True, low=0.1),
 )
+
+
+def plug_in_area(spec: str, parameters: str) -> RestrictedArea | None:
+    """The plug-in check named by the parameters, or None; ValueError with one line."""
+    if not spec:
+        return None
+    try:
+        keywords = yaml.safe_load(parameters) if parameters else {}
+    except yaml.YAMLError as error:
+        raise ValueError(f"parameter restricted_area_parameters is not YAML: {error}") from None
+    if not isinstance(keywords, dict):
+        raise ValueError(f"parameter restricted_area_parameters must be a mapping, got "
+                         f"{parameters!r}")
+    return load_area(spec, keywords)
 
 
 class PolicyNode(Node):
@@ -128,7 +154,9 @@ class PolicyNode(Node):
             pusher_in_observation=PUSHT_ROBOT.pusher_in_observation)
         self.policy = load_policy(values["model"])
         self.configurations = load_configurations(values["configurations_file"])
-        self.zones = LiveZones(values["max_zones"], values["max_vertices"])
+        self.zones = LiveZones(values["max_zones"], values["max_vertices"],
+                               plug_in_area(values["restricted_area"],
+                                            values["restricted_area_parameters"]))
         self.zone_counts = {"zone_messages": 0, "zones_applied": 0, "zones_refused": 0,
                             "zones_stale": 0, "zone_batches": 0}
         self.generator = torch.Generator().manual_seed(values["noise_seed"])
@@ -152,6 +180,8 @@ class PolicyNode(Node):
                                                    self._on_zone, profile)
                           for profile in (volatile, latched)]
         self._zone_messages_seen: OrderedDict[tuple, None] = OrderedDict()
+        self._subscribe("keepout_mask", OccupancyGrid, self._on_keepout_mask)
+        self.keepout_ids: list[str] = []
         self._subscribe("keypoints", PolygonStamped, self._on_keypoints)
         self._subscribe("pusher", PointStamped, self._on_pusher)
         self.create_service(Trigger, SERVICES["clear_zones"].name, self._on_clear)
@@ -180,6 +210,8 @@ class PolicyNode(Node):
         self.violations = 0
         self.zone_change_time: float | None = None
         self.replan_latency_ms = float("nan")
+        if self.zones.fixed is not None:
+            self._publish_markers()  # viewers see the plug-in check from the start
         if self.mode == "realtime":
             # What start-up built (policy, torch, rclpy) lives as long as the node: out of the
             # collector's sight, so a full collection no longer holds the GIL for 100s of ms.
@@ -329,7 +361,8 @@ class PolicyNode(Node):
         self._count_violation(setpoint)
 
     def _count_violation(self, setpoint: np.ndarray) -> None:
-        if bool(self.zones.snapshot().contains(torch.tensor(setpoint[None]))[0]):
+        area = self.zones.area_at(0)
+        if area is not None and bool(area.contains(torch.tensor(setpoint[None]))[0]):
             self.violations += 1
 
     def _after_plan(self, chunk: np.ndarray) -> None:
@@ -408,6 +441,33 @@ class PolicyNode(Node):
         if outcome.changed:
             self._zones_changed()
 
+    def _on_keepout_mask(self, msg: OccupancyGrid) -> None:
+        """A keep-out mask: its restricted cells become zones ("keepout/<k>", exact polygons)
+        in place of the previous mask's; they do not expire."""
+        if msg.header.frame_id not in ("", FRAME_ID):
+            self.get_logger().warning(f"keep-out mask refused: frame {msg.header.frame_id!r} "
+                                      f"is not {FRAME_ID!r}")
+            return
+        info = msg.info
+        try:
+            polygons = grid_polygons(
+                np.asarray(msg.data, dtype=np.int8), info.resolution,
+                (info.origin.position.x, info.origin.position.y),
+                self.get_parameter("keepout_threshold").value, width=info.width,
+                height=info.height, workspace=self.robot.workspace)
+        except ValueError as error:
+            self.get_logger().warning(f"keep-out mask refused: {error}")
+            return
+        ids = [f"keepout/{k}" for k in range(len(polygons))]
+        removed = [(old, []) for old in self.keepout_ids if old not in ids]
+        outcome = self.zones.apply([*removed, *zip(ids, polygons)], self._now())
+        self.keepout_ids = [i for i in ids if i not in dict(outcome.refused)]
+        self._count_zones(outcome, 0)
+        self.get_logger().info(f"keep-out mask {info.width} x {info.height} cells: "
+                               f"{len(self.keepout_ids)} zone(s)")
+        if outcome.changed:
+            self._zones_changed()
+
     def _seen_before(self, message: PolygonInstanceStamped, info: dict) -> bool:
         """Whether the other zone subscription already delivered this message (a latched
         publisher reaches both): same publication time, sequence number and id."""
@@ -473,7 +533,10 @@ class PolicyNode(Node):
     def _publish_markers(self) -> None:
         stamp = self.get_clock().now().to_msg()
         namespace = "/".join((self.get_namespace().rstrip("/"), MARKER_NAMESPACE))
-        self.marker_pub.publish(zone_markers(self.zones.outlines(), stamp, namespace))
+        outlines = self.zones.outlines()
+        for k, polygon in enumerate(getattr(self.zones.fixed, "polygons", None) or []):
+            outlines[f"plugin/{k}"] = polygon  # a plug-in check that can show itself
+        self.marker_pub.publish(zone_markers(outlines, stamp, namespace))
 
 
 def main(args: list[str] | None = None) -> int:

@@ -23,12 +23,14 @@ import numpy as np
 import yaml
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PointStamped, PolygonInstanceStamped
+from nav_msgs.msg import OccupancyGrid
 from rclpy.node import Node
 
 from constrained_diffusion_ros.evaluation.scenarios import Scenario, load_scenarios
-from constrained_diffusion_ros.zones import validate_polygon
+from constrained_diffusion_ros.pusht import PUSHT_ROBOT
+from constrained_diffusion_ros.zones import rasterize, validate_polygon
 from msg_schemas import NAMESPACE, TOPICS, qos_profile
-from msg_schemas.conversions import step_of_stamp, zone_message
+from msg_schemas.conversions import occupancy_grid, step_of_stamp, zone_message
 from msg_schemas.parameters import Param, declare
 from msg_schemas.spin import spin_node
 from sim_bridge import CONTROL_HZ
@@ -59,6 +61,9 @@ PARAMETERS = (
           low=-1, high=2**31 - 1),
     Param("rate_hz", 2.0, "re-publish rate; 0: publish once (the topic is latched)", low=0.0,
           high=1000.0),
+    Param("keepout_resolution", 0.0, "above 0: publish the scenario's zones as a keep-out "
+          "mask of cells this many px wide (keepout_mask, nav2's convention) instead of "
+          "polygons", low=0.0, high=512.0),
     Param("follow_sim_time", True, "moving zones follow the sim's step (from the pusher "
           "stamps); false: wall time"),
 )
@@ -101,6 +106,13 @@ class ZonePublisher(Node):
         topic = TOPICS["zones"]
         self.pub = self.create_publisher(PolygonInstanceStamped, topic.name,
                                          qos_profile(topic, "publisher"))
+        self.grid_resolution = float(param("keepout_resolution"))
+        if self.grid_resolution > 0:
+            if self.scenario is None:
+                raise ValueError("keepout_resolution needs a scenario")
+            mask = TOPICS["keepout_mask"]
+            self.grid_pub = self.create_publisher(OccupancyGrid, mask.name,
+                                                  qos_profile(mask, "publisher"))
         self.follow = bool(param("follow_sim_time")) and self.scenario is not None \
             and self.scenario.moving
         self.step = 0
@@ -125,13 +137,24 @@ class ZonePublisher(Node):
             stamp = now.to_msg()
             if self.scenario is not None and self.scenario.moving:
                 self.step = int((now - self.start).nanoseconds * CONTROL_HZ // 1_000_000_000)
-        if self.scenario is not None:
+        if self.scenario is not None and self.grid_resolution > 0:
+            self.grid_pub.publish(self.keepout_mask(stamp))
+        elif self.scenario is not None:
             for zone_id, vertices in zip(self.scenario_ids, self.scenario.polygons_at(self.step)):
                 self.pub.publish(zone_message(zone_id, vertices, stamp))
         if self.adhoc is not None:
             self.pub.publish(zone_message(*self.adhoc, stamp))
         if self.remove_id is not None:
             self.pub.publish(zone_message(self.remove_id, None, stamp))
+
+    def keepout_mask(self, stamp) -> OccupancyGrid:
+        """The scenario's zones at the current step rasterized over the workspace."""
+        x_min, y_min, x_max, y_max = PUSHT_ROBOT.workspace
+        cells = (int(np.ceil((x_max - x_min) / self.grid_resolution)),
+                 int(np.ceil((y_max - y_min) / self.grid_resolution)))
+        values = rasterize(self.scenario.polygons_at(self.step), self.grid_resolution,
+                           (x_min, y_min), *cells)
+        return occupancy_grid(values, self.grid_resolution, (x_min, y_min), stamp)
 
     def on_pusher(self, msg: PointStamped) -> None:
         """A new sim step (stamp = step / 10 s; a reset goes back to 0): move the zones there."""

@@ -11,6 +11,7 @@ import numpy as np
 import shapely
 from numpy.typing import ArrayLike
 
+from constrained_diffusion_ros.zones.area import AreaUnion, RestrictedArea
 from constrained_diffusion_ros.zones.geometry import ZoneSet, validate_polygon
 
 ZoneId = str | int
@@ -65,8 +66,11 @@ class LiveZones:
     """
 
     def __init__(self, max_zones: int = DEFAULT_MAX_ZONES,
-                 max_vertices: int = DEFAULT_MAX_VERTICES) -> None:
+                 max_vertices: int = DEFAULT_MAX_VERTICES,
+                 fixed: RestrictedArea | None = None) -> None:
         self.max_zones, self.max_vertices = max_zones, max_vertices
+        self.fixed = fixed  # always in force besides the zones (a plug-in check)
+        self._union: tuple[ZoneSet, RestrictedArea] | None = None
         self._lock = threading.Lock()
         self._zones: dict[ZoneId, _Zone] = {}
         self._version = 0
@@ -163,10 +167,16 @@ class LiveZones:
 
     # The executor's zone source: the same zones for every step and episode, until they change.
 
-    def area_at(self, step: int) -> ZoneSet | None:
-        """The zones in force, or None when there are none."""
+    def area_at(self, step: int) -> RestrictedArea | None:
+        """The zones in force and the fixed area, or None when there is neither."""
         snapshot = self.snapshot()
-        return None if snapshot.is_empty else snapshot
+        if self.fixed is None:
+            return None if snapshot.is_empty else snapshot
+        if snapshot.is_empty:
+            return self.fixed
+        if self._union is None or self._union[0] is not snapshot:  # one per snapshot
+            self._union = (snapshot, AreaUnion([self.fixed, snapshot]))
+        return self._union[1]
 
     def version_at(self, step: int) -> int:
         return self._version

@@ -16,24 +16,20 @@ from ros_helpers import REPO, random_domain_id, stamp_step
 from constrained_diffusion_ros.evaluation.bags import read_messages, read_trial
 from constrained_diffusion_ros.evaluation.runner import evaluate_configuration
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
+from constrained_diffusion_ros.examples.camera import CameraZones
 from constrained_diffusion_ros.planning.config import load_configurations
 from constrained_diffusion_ros.policy.weights import load_policy
 from msg_schemas import TOPICS
 
+SEED, STEPS = 100019, 16  # the tiny policy enters the left half there when unconstrained
 
-def test_trial_command_records_the_batched_evaluation(tiny_model, configurations_file, tmp_path):
-    """`trial` end to end, checked against the ROS-free batched evaluation of the same episode.
 
-    left_0.5 / fast_safe (projection, inflation, shield) / seed 100019: the tiny policy scores
-    s > 0 there and, unconstrained (fast_none), commands setpoints inside the zone, so equal s
-    and r = 0 are not vacuous; the shield changes setpoints there, in both alike."""
-    scenario_name, seed, steps = "left_0.5", 100019, 16
-    output = tmp_path / "trial"
+def run_trial_command(output, model, configurations_file, *arguments: str) -> str:
+    """`trial` with fast_safe on the tiny policy, seed SEED, STEPS steps; its output."""
     command = [sys.executable, "-m", "constrained_diffusion_ros.evaluation.trial",
-               "--scenario", scenario_name, "--configuration", "fast_safe",
-               "--configurations-file", str(configurations_file), "--seed", str(seed),
-               "--steps", str(steps), "--output", str(output), "--model", str(tiny_model),
-               "--timeout", "60", "--domain-id", str(random_domain_id())]
+               "--configuration", "fast_safe", "--configurations-file", str(configurations_file),
+               "--seed", str(SEED), "--steps", str(STEPS), "--output", str(output), "--model",
+               str(model), "--timeout", "60", "--domain-id", str(random_domain_id()), *arguments]
     process = subprocess.Popen(command, cwd=REPO, env={**os.environ, "OMP_NUM_THREADS": "1"},
                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
@@ -43,16 +39,38 @@ def test_trial_command_records_the_batched_evaluation(tiny_model, configurations
             process.send_signal(signal.SIGINT)
             process.communicate(timeout=20)
     assert process.returncode == 0, out
+    return out
+
+
+def batched(model, configurations_file, scenario, configuration: str = "fast_safe"):
+    """The ROS-free evaluation of the same episode: (cell, log)."""
+    (cell,), log = evaluate_configuration(
+        load_policy(model), load_configurations(configurations_file)[configuration],
+        [scenario], seeds=[SEED], n_steps=STEPS, progress=False)
+    return cell, log
+
+
+def test_trial_command_records_the_batched_evaluation(tiny_model, configurations_file, tmp_path):
+    """`trial` end to end, checked against the ROS-free batched evaluation of the same episode.
+
+    left_0.5 / fast_safe (projection, inflation, shield) / seed 100019: the tiny policy scores
+    s > 0 there and, unconstrained (fast_none), commands setpoints inside the zone, so equal s
+    and r = 0 are not vacuous; the shield changes setpoints there, in both alike."""
+    scenario_name, seed, steps = "left_0.5", SEED, STEPS
+    output = tmp_path / "trial"
+    run_trial_command(output, tiny_model, configurations_file, "--scenario", scenario_name)
     for name in ("bag", "frames.png", "trial.gif", "trial.json"):
         assert (output / name).exists(), name
     assert (output / "frames.png").read_bytes().startswith(b"\x89PNG")
     assert len(iio.imread(output / "trial.gif", index=None)) == steps // 2 + 1
 
     messages = read_messages(output / "bag")
-    assert set(messages) == {endpoint.resolved() for endpoint in TOPICS.values()}
+    unused = {TOPICS["keepout_mask"].resolved()}  # zones come as polygons here
+    assert set(messages) == {endpoint.resolved() for endpoint in TOPICS.values()} - unused
     info = yaml.safe_load((output / "bag" / "metadata.yaml").read_text())
     custom = info["rosbag2_bagfile_information"]["custom_data"]
-    assert json.loads(custom["message_counts"]) == {t: len(m) for t, m in messages.items()}
+    counts = json.loads(custom["message_counts"])  # every contract topic, 0 if none came
+    assert {t: n for t, n in counts.items() if n} == {t: len(m) for t, m in messages.items()}
     setpoint_steps = [stamp_step(m.header.stamp) for m in messages[TOPICS["setpoint"].resolved()]]
     # One setpoint per executed step; the policy may also answer the final observation (step
     # `steps`), which the sim ignores at max_steps, before the trial stops it.
@@ -84,3 +102,50 @@ def test_trial_command_records_the_batched_evaluation(tiny_model, configurations
     _, unshielded = evaluate_configuration(policy, configurations["fast_inflated"], [scenario],
                                            seeds=[seed], n_steps=steps, progress=False)
     assert (unshielded.commanded != log.commanded).any()  # the shield acted, in both alike
+
+
+def test_a_keepout_grid_and_a_plug_in_check_are_obeyed_like_the_polygons(
+        tiny_model, configurations_file, tmp_path) -> None:
+    """The left half as a keep-out mask (4 px cells: exactly the polygon again) and as a
+    plug-in check drawn in a camera's image: each trial equals the batched evaluation of the
+    polygons bit for bit, with r = 0 where the unconstrained policy enters."""
+    left = load_scenarios()["left_0.5"]
+    cell, log = batched(tiny_model, configurations_file, left)
+    free, _ = batched(tiny_model, configurations_file, left, "fast_none")
+    assert free.r > 0 and cell.r == 0
+
+    grid = tmp_path / "grid"
+    run_trial_command(grid, tiny_model, configurations_file, "--scenario", "left_0.5",
+                      "--keepout-grid", "4")
+    messages = read_messages(grid / "bag")
+    assert messages[TOPICS["keepout_mask"].resolved()]  # the zones went as a mask
+    assert not messages.get(TOPICS["zones"].resolved())
+
+    camera = CameraZones("camera_zones.yaml")  # the shipped camera, drawing the left half
+    drawn = camera.to_image(left.polygons[0]).round(3).tolist()
+    config = tmp_path / "camera.yaml"
+    config.write_text(yaml.safe_dump({"image_to_workspace": camera.homography.tolist(),
+                                      "zones": [drawn]}))
+    scenarios = tmp_path / "scenarios.yaml"
+    scenarios.write_text(yaml.safe_dump({"camera_left": {"plugin": {
+        "class": "constrained_diffusion_ros.examples.camera:CameraZones",
+        "parameters": {"config_file": str(config)}}}}))
+    plugged = tmp_path / "plugin"
+    run_trial_command(plugged, tiny_model, configurations_file, "--scenario", "camera_left",
+                      "--scenarios-file", str(scenarios))
+    assert not read_messages(plugged / "bag").get(TOPICS["zones"].resolved())  # no zone topic
+
+    camera_left = load_scenarios(scenarios)["camera_left"]
+    plugged_cell, plugged_log = batched(tiny_model, configurations_file, camera_left)
+    for output, expected, expected_log, tolerance in ((grid, cell, log, 0.5),
+                                                      (plugged, plugged_cell, plugged_log, 0.0)):
+        results = json.loads((output / "trial.json").read_text())["results"]
+        assert results["r"] == 0.0 and results["r_body"] == expected.r_body  # as evaluated
+        received = read_trial(output / "bag")
+        commanded = np.array([(received["setpoint"][t].point.x, received["setpoint"][t].point.y)
+                              for t in range(STEPS)])
+        # The plug-in trial is the batched evaluation of its own scenario, bit for bit; the
+        # mask's polygon is the left half again, its vertices in another order: the same
+        # setpoints to float rounding.
+        assert np.abs(commanded - expected_log.commanded[0]).max() <= tolerance
+        assert abs(results["s"] - expected.s) <= 0.02

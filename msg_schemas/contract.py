@@ -64,7 +64,9 @@ TOPICS: dict[str, Endpoint] = {e.key: e for e in (
              "A keep-out mask (nav2 keep-out filter convention: cells >= keepout_threshold are "
              "restricted, -1 free); replaces the previous mask"),
     Endpoint("zone_markers", "visualization_msgs/msg/MarkerArray", "latched",
-             "policy_node", ("recorder",), "px, frame workspace", "Active zones for viewers"),
+             "policy_node", ("recorder",), "px, frame workspace",
+             "Zones in force for viewers: one line strip per zone, marker id = zone id, marker "
+             "namespace <node namespace>/zones"),
     Endpoint("/clock", "rosgraph_msgs/msg/Clock", "clock", "sim_node",
              ("policy_node", "zone_publisher", "recorder"), "simulated time = control step / 10",
              "Simulated time with each observation: nodes started with use_sim_time run on it "

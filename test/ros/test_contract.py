@@ -8,13 +8,14 @@ import re
 from pathlib import Path
 
 from msg_schemas import SERVICES, TOPICS
-from msg_schemas.diagram import mermaid
+from msg_schemas.diagram import interface_table, mermaid
 
 REPO = Path(__file__).resolve().parents[2]
 
 
-def test_readme_diagram_is_the_generated_one() -> None:
-    assert mermaid() in (REPO / "README.md").read_text()
+def test_readme_diagram_and_interface_table_are_the_generated_ones() -> None:
+    readme = (REPO / "README.md").read_text()
+    assert mermaid() in readme and interface_table() in readme
 
 
 def test_every_interface_type_resolves_to_a_ros_class() -> None:

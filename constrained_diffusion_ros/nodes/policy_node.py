@@ -72,7 +72,8 @@ MODES = ("lockstep", "realtime")
 ROBOT_FIELDS = ("pusher_radius", "kp", "kv", "control_hz", "physics_hz")  # and workspace
 ZONE_BATCH_MAX = 10_000  # zone messages taken in one callback at most
 MARKER_NAMESPACE = "zones"  # zone markers: marker namespace <node namespace>/zones, id = zone id
-HEALTH_COUNTERS = ("violations", "zones_refused", "held_steps")  # their rise sets the level
+# Their rise since the last report sets the diagnostic level.
+HEALTH_COUNTERS = ("violations", "unsound_setpoints", "zones_refused", "held_steps")
 STATUS_PERIOD_S = 0.5  # realtime: status this often (zone markers: at most once per tick)
 
 PARAMETERS = (
@@ -156,7 +157,8 @@ class PolicyNode(Node):
         self.configurations = load_configurations(values["configurations_file"])
         self.zones = LiveZones(values["max_zones"], values["max_vertices"],
                                plug_in_area(values["restricted_area"],
-                                            values["restricted_area_parameters"]))
+                                            values["restricted_area_parameters"]),
+                               workspace=self.robot.workspace)
         self.zone_counts = {"zone_messages": 0, "zones_applied": 0, "zones_refused": 0,
                             "zones_stale": 0, "zone_batches": 0}
         self.generator = torch.Generator().manual_seed(values["noise_seed"])
@@ -208,6 +210,8 @@ class PolicyNode(Node):
         self.latest_stamp = None  # realtime: the newest observation's stamp
         self.last_setpoint: PointStamped | None = None
         self.violations = 0
+        self.unsound_setpoints = 0  # non-finite or outside the workspace: the pusher held
+        self.latest_pusher: np.ndarray | None = None
         self.zone_change_time: float | None = None
         self.replan_latency_ms = float("nan")
         if self.zones.fixed is not None:
@@ -313,7 +317,21 @@ class PolicyNode(Node):
         if not np.all(np.isfinite(observation)):
             self.get_logger().warning("observation with NaN/inf ignored")
             return None
+        self.latest_pusher = self.robot.pusher(observation).astype(float)
         return observation
+
+    def _sendable(self, setpoint: np.ndarray) -> np.ndarray:
+        """Never a non-finite or out-of-workspace setpoint: such a one (zones that leave the
+        pusher no free space, a policy that emits NaN) is replaced by the pusher's own
+        position, held, and reported as ERROR until setpoints are sound again."""
+        x_min, y_min, x_max, y_max = self.robot.workspace
+        if np.all(np.isfinite(setpoint)) and x_min <= setpoint[0] <= x_max \
+                and y_min <= setpoint[1] <= y_max:
+            return setpoint
+        self.unsound_setpoints += 1
+        self.get_logger().error(f"no sound setpoint ({setpoint.tolist()}): holding the pusher",
+                                throttle_duration_sec=1.0)
+        return np.clip(self.latest_pusher, (x_min, y_min), (x_max, y_max))
 
     def _on_tick(self) -> None:
         """Realtime, on the clock's thread: exactly one setpoint per tick, the one computed
@@ -331,6 +349,7 @@ class PolicyNode(Node):
         """Realtime: `setpoint` is what the clock sends from now on (sent at once if asked)."""
         if setpoint is None or self.latest_stamp is None:
             return
+        setpoint = self._sendable(setpoint)
         message = point_message(setpoint, self.latest_stamp)
         with self._send_lock:
             self._held = message
@@ -355,6 +374,7 @@ class PolicyNode(Node):
 
     def _publish_setpoint(self, setpoint: np.ndarray, stamp_msg) -> None:
         """Stamped with the observation's own stamp (exact nanoseconds): lockstep matches it."""
+        setpoint = self._sendable(setpoint)
         msg = point_message(setpoint, stamp_msg)
         self.setpoint_pub.publish(msg)
         self.last_setpoint = msg
@@ -373,7 +393,7 @@ class PolicyNode(Node):
 
     def _publish_status(self, planning_ms: float) -> None:
         values = {"configuration": self.config.name, "mode": self.mode,
-                  "violations": self.violations,
+                  "violations": self.violations, "unsound_setpoints": self.unsound_setpoints,
                   "plans": self.chunk_executor.stats.planner_calls,
                   "planning_ms": f"{planning_ms:.1f}",
                   "replan_latency_ms": f"{self.replan_latency_ms:.1f}",
@@ -401,6 +421,10 @@ class PolicyNode(Node):
         counts = {key: int(values.get(key, 0)) for key in HEALTH_COUNTERS}
         since = {key: counts[key] - self._health_counts.get(key, 0) for key in counts}
         self._health_counts = counts
+        if since["unsound_setpoints"]:
+            return DiagnosticStatus.ERROR, (
+                f"no sound setpoint {since['unsound_setpoints']} time(s) (zones leave no free "
+                f"space, or a non-finite action): the pusher held")
         if since["violations"]:
             return DiagnosticStatus.ERROR, f"{since['violations']} setpoint(s) inside a zone"
         problems = []

@@ -39,8 +39,11 @@ def rectangle(x_min: float, y_min: float, x_max: float, y_max: float) -> np.ndar
     return np.array([[x_min, y_min], [x_max, y_min], [x_max, y_max], [x_min, y_max]], dtype=float)
 
 
-def validate_polygon(vertices: ArrayLike, label: str = "polygon") -> shapely.Polygon:
-    """Turn vertices (V, 2) into a valid shapely polygon, or raise ValueError naming the fault.
+def validate_polygon(vertices: ArrayLike, label: str = "polygon",
+                     workspace: Bounds | None = None) -> shapely.Geometry:
+    """Turn vertices (V, 2) into a valid shapely polygon the planner can enforce (clipped to
+    `workspace` if given: several polygons if the clip splits it), or raise ValueError naming
+    the fault.
 
     Checked here so that bad input is refused where it arrives, with `label` (e.g. "zone 'a'")
     in the message, instead of corrupting the union later.
@@ -62,9 +65,43 @@ def validate_polygon(vertices: ArrayLike, label: str = "polygon") -> shapely.Pol
     reason = shapely.is_valid_reason(polygon)
     if reason != "Valid Geometry":
         raise ValueError(f"{label}: invalid polygon, {reason}")
-    if polygon.area <= 0.0:
-        raise ValueError(f"{label}: zero area")
+    if workspace is not None:
+        return clip_to_workspace(polygon, workspace, label)
+    return check_enforceable(polygon, label)
+
+
+MIN_ZONE_AREA = 1.0  # px^2: below it a zone is rounding noise (float32 vertices), not a region
+MIN_ZONE_WIDTH = 0.5  # px: mean width, 2 area / perimeter (a band's width, half a square's)
+
+
+def check_enforceable(polygon: shapely.Geometry, label: str) -> shapely.Geometry:
+    """The polygon itself if the planner can enforce it: an area of at least `MIN_ZONE_AREA`,
+    not a sliver (collinear points rounded to float32 make zero-area slivers that inflate to
+    wide bands), and still a region when grown (huge coordinates make buffering return
+    nothing); else ValueError naming the fault."""
+    if polygon.area < MIN_ZONE_AREA:
+        raise ValueError(f"{label}: area {polygon.area:.3g} px^2, below {MIN_ZONE_AREA:g}")
+    if 2 * polygon.area / polygon.length < MIN_ZONE_WIDTH:
+        raise ValueError(f"{label}: a sliver, narrower than {MIN_ZONE_WIDTH:g} px")
+    if polygon.buffer(1.0).is_empty:
+        raise ValueError(f"{label}: coordinates too large to grow the zone; keep them near the "
+                         f"workspace")
     return polygon
+
+
+def clip_to_workspace(polygon: shapely.Geometry, workspace: Bounds,
+                      label: str = "polygon") -> shapely.Geometry:
+    """The part of a zone inside the workspace (a zone reaching beyond it, even one covering
+    everything, stays enforceable); ValueError if nothing, or only a sliver, is left."""
+    x_min, y_min, x_max, y_max = workspace
+    if shapely.within(polygon, shapely.box(x_min, y_min, x_max, y_max)):
+        return check_enforceable(polygon, label)
+    inside = shapely.intersection(shapely.box(x_min, y_min, x_max, y_max), polygon)
+    parts = [part for part in shapely.get_parts(inside) if isinstance(part, shapely.Polygon)
+             and not part.is_empty]
+    if not parts:
+        raise ValueError(f"{label}: lies outside the workspace {list(workspace)}")
+    return check_enforceable(shapely.union_all(parts), f"{label} (inside the workspace)")
 
 
 def _cross(u: Tensor, v: Tensor) -> Tensor:

@@ -11,7 +11,7 @@ import numpy as np
 import shapely
 from numpy.typing import ArrayLike
 
-from constrained_diffusion_ros.zones.area import AreaUnion, RestrictedArea
+from constrained_diffusion_ros.zones.area import AreaUnion, Bounds, RestrictedArea
 from constrained_diffusion_ros.zones.geometry import ZoneSet, validate_polygon
 
 ZoneId = str | int
@@ -19,8 +19,8 @@ ZoneId = str | int
 
 @dataclass(frozen=True)
 class _Zone:
-    polygon: shapely.Polygon
-    vertices: np.ndarray  # (V, 2) as received (validated), for viewers
+    polygon: shapely.Geometry  # a polygon, or several where a clip split it
+    vertices: np.ndarray  # (V, 2) the outline in force, for viewers
     expires_at: float  # math.inf: never
 
 
@@ -67,8 +67,9 @@ class LiveZones:
 
     def __init__(self, max_zones: int = DEFAULT_MAX_ZONES,
                  max_vertices: int = DEFAULT_MAX_VERTICES,
-                 fixed: RestrictedArea | None = None) -> None:
+                 fixed: RestrictedArea | None = None, workspace: Bounds | None = None) -> None:
         self.max_zones, self.max_vertices = max_zones, max_vertices
+        self.workspace = workspace  # zones are clipped to it, so what is accepted is enforced
         self.fixed = fixed  # always in force besides the zones (a plug-in check)
         self._union: tuple[ZoneSet, RestrictedArea] | None = None
         self._lock = threading.Lock()
@@ -100,13 +101,16 @@ class LiveZones:
         if len(vertices) > self.max_vertices:
             raise ValueError(f"zone {zone_id!r}: {len(vertices)} vertices, more than the "
                              f"{self.max_vertices} allowed")
-        polygon = validate_polygon(vertices, f"zone {zone_id!r}")
+        polygon = validate_polygon(vertices, f"zone {zone_id!r}", self.workspace)
+        # What viewers see: the outline in force (as received unless clipped; a zone that the
+        # clip split shows its first part).
+        vertices = np.asarray(shapely.get_parts(polygon)[0].exterior.coords)[:-1]
         with self._lock:
             previous = self._zones.get(zone_id)
             if previous is None and len(self._zones) >= self.max_zones:
                 raise ValueError(f"zone {zone_id!r}: {self.max_zones} zones in force already "
                                  f"(the cap); remove one first")
-            self._zones[zone_id] = _Zone(polygon, np.asarray(vertices, float), expires_at)
+            self._zones[zone_id] = _Zone(polygon, vertices, expires_at)
             if previous is None or not previous.polygon.equals_exact(polygon, 0.0):
                 self._changed()  # a re-published, identical zone only refreshes its lifetime
         return True
@@ -182,7 +186,7 @@ class LiveZones:
         return self._version
 
     def outlines(self) -> dict[ZoneId, np.ndarray]:
-        """Each zone in force by id, (V, 2) vertices as received: what viewers show."""
+        """Each zone in force by id, (V, 2) its outline: what viewers show."""
         with self._lock:
             return {zone_id: zone.vertices for zone_id, zone in self._zones.items()}
 

@@ -83,3 +83,32 @@ def test_lifetime_counts_from_the_stamp_so_a_replayed_stale_zone_stays_gone() ->
     assert set(live.outlines()) == set()
     live.apply([(5, square)], now=100.0)
     np.testing.assert_array_equal(live.outlines()[5], square)
+
+
+WORKSPACE = (0.0, 0.0, 512.0, 512.0)
+
+
+def test_a_zone_beyond_the_workspace_is_clipped_so_what_is_accepted_is_enforced() -> None:
+    """A square from -1e30 to 1e30 used to be accepted and then grow into nothing; clipped,
+    it is the workspace, and grown by the pusher radius it still holds every point."""
+    live = LiveZones(workspace=WORKSPACE)
+    live.apply([(1, rectangle(-1e30, -1e30, 1e30, 1e30))], now=0.0)
+    area = live.snapshot()
+    assert area.area == pytest.approx(512.0 * 512.0)
+    points = torch.rand(200, 2, dtype=torch.float64) * 512.0
+    assert area.inflate(15.0).contains(points).all()
+    outcome = live.apply([(2, rectangle(600, 600, 700, 700))], now=0.0)  # wholly outside
+    assert outcome.refused and "outside the workspace" in outcome.refused[0][1]
+
+
+def test_slivers_and_specks_are_refused_and_the_zones_in_force_stay() -> None:
+    live = LiveZones(workspace=WORKSPACE)
+    live.apply([(1, rectangle(10, 10, 50, 50))], now=0.0)
+    # Collinear points rounded to float32: a zero-area sliver 300 px long.
+    line = np.array([[0.1, 0.1], [300.1, 200.1], [150.1, 100.1]], dtype=np.float32)
+    tiny = rectangle(100, 100, 100.5, 100.5)
+    thin = [[0.0, 0.0], [300.0, 1.0], [600.0, 2.5]]  # 1.5 px^2 over 300 px, clipped: a sliver
+    outcome = live.apply([(2, line.astype(float)), (3, tiny), (4, thin)], now=0.0)
+    reasons = dict(outcome.refused)
+    assert set(reasons) == {2, 3, 4} and live.ids == [1]
+    assert "area" in reasons[2] and "area" in reasons[3] and "sliver" in reasons[4]

@@ -105,6 +105,8 @@ keep-out mask) keeps its latest message only, as nav2's map server.
     # being overwritten, and a late joiner gets every id's last message.
     depths = {"map": 1, "latched": 10_000}
     depth = depths.get(endpoint.qos, 1000 if keeps_history else 10)
+    if role == "recorder":  # a recorder queues whatever comes, in bursts too
+        depth = max(depth, 1000)
     return QoSProfile(
         history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
         durability=DurabilityPolicy.TRANSIENT_LOCAL if keeps_history else DurabilityPolicy.VOLATILE)

@@ -9,6 +9,7 @@ from pathlib import Path
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PolygonInstanceStamped
+from nav_msgs.msg import OccupancyGrid
 from nav_msgs.msg import Path as PathMsg
 from ros_helpers import SEED, stamp_ns
 from rosbags.rosbag2 import Reader
@@ -37,7 +38,8 @@ def test_recorder_writes_every_topic_and_metadata(ros, sim, processes, tmp_path)
     recorder, log = processes.start("recorder",
                                     output=bag, metadata_file=metadata_file)
     published = {"plan": PathMsg, "diagnostics": DiagnosticArray,
-                 "zone_markers": MarkerArray, "zones": PolygonInstanceStamped}
+                 "zone_markers": MarkerArray, "zones": PolygonInstanceStamped,
+                 "keepout_mask": OccupancyGrid}
     publishers = {topic: ros.publisher(topic, msg_type) for topic, msg_type in published.items()}
 
     def recorder_matched_all() -> bool:
@@ -62,6 +64,7 @@ def test_recorder_writes_every_topic_and_metadata(ros, sim, processes, tmp_path)
         zone = PolygonInstanceStamped()
         zone.polygon.id = 40 + i
         publishers["zones"].publish(zone)
+        publishers["keepout_mask"].publish(OccupancyGrid())
     ros.spin_for(0.2)  # let the last messages reach the recorder; it drains its queue on stop
     metadata_file.write_text(json.dumps({"scenario": "two_zones", "result": {"score": 0.5}}))
     recorder.send_signal(signal.SIGINT)

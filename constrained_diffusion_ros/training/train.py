@@ -188,6 +188,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--checkpoint-every", type=int, default=1000)
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoint")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace a model already in --output (refused otherwise)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
 
@@ -197,6 +199,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.steps <= 0 or args.batch_size <= 0 or args.checkpoint_every <= 0:
         print("train_policy: --steps, --batch-size and --checkpoint-every must be positive",
               file=sys.stderr)
+        return 2
+    output = Path(args.output)
+    if (output / "model.safetensors").exists() and not (args.resume or args.overwrite):
+        print(f"train_policy: {output} holds a model already; pass --resume to continue its "
+              f"checkpoint, --overwrite to replace it, or another --output", file=sys.stderr)
         return 2
     try:
         train(args)

@@ -59,3 +59,6 @@ def test_tiny_training_lowers_the_loss_and_resumes(dataset_path: Path, tmp_path:
     policy = load_policy(out)
     assert policy.config.down_dims == tiny_dims
     assert json.loads((out / "config.json").read_text())["training"]["steps"] == 60
+    weights = (out / "model.safetensors").read_bytes()
+    assert train.main([*common, "--steps", "30"]) == 2  # a model there: neither flag given
+    assert (out / "model.safetensors").read_bytes() == weights

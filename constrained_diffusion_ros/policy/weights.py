@@ -56,6 +56,11 @@ def load_policy(directory: str | Path) -> DiffusionPolicy:
             f"{len(unexpected)} unexpected, {len(wrong_shape)} of the wrong shape "
             f"(first: {(missing + unexpected + wrong_shape)[:3]})"
         )
+    broken = [name for name, tensor in tensors.items()
+              if tensor.is_floating_point() and not bool(tensor.isfinite().all())]
+    if broken:
+        raise ValueError(f"weights in {path} hold NaN or inf ({len(broken)} tensors, first: "
+                         f"{broken[0]}): a diverged training run?")
     policy.unet.load_state_dict(tensors)
     return policy.eval().requires_grad_(False)
 

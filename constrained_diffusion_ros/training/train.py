@@ -145,6 +145,10 @@ def train(args: argparse.Namespace) -> dict:
             for group in optimizer.param_groups:
                 group["lr"] = args.lr * cosine_with_warmup(step, args.warmup, args.steps)
             loss = policy.compute_loss(obs, actions, generator)
+            if not torch.isfinite(loss):  # NaN in the data or a diverged run: stop, save none
+                raise ValueError(f"non-finite loss ({loss.item()}) at step {step + 1}; nothing "
+                                 f"saved after the last checkpoint (check the dataset for "
+                                 f"NaN, or lower --lr)")
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()

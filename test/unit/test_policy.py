@@ -85,3 +85,12 @@ def test_shipped_policy_makes_progress_in_closed_loop(shipped: DiffusionPolicy) 
     log = rollout(planner, seeds, n_steps=96, generator=generator)
     start = log.coverage[:, 0]
     assert log.coverage.max(axis=1).mean() > start.mean() + 0.3, log.coverage.max(axis=1)
+
+
+def test_weights_with_nan_are_refused(tmp_path: Path, tiny_policy: DiffusionPolicy) -> None:
+    """What a diverged training run saves loads no more: the node would publish NaN."""
+    with torch.no_grad():
+        next(tiny_policy.unet.parameters())[0] = float("nan")
+    save_policy(tiny_policy, tmp_path)
+    with pytest.raises(ValueError, match="NaN or inf"):
+        load_policy(tmp_path)

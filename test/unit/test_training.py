@@ -62,3 +62,21 @@ def test_tiny_training_lowers_the_loss_and_resumes(dataset_path: Path, tmp_path:
     weights = (out / "model.safetensors").read_bytes()
     assert train.main([*common, "--steps", "30"]) == 2  # a model there: neither flag given
     assert (out / "model.safetensors").read_bytes() == weights
+
+
+def test_a_non_finite_loss_stops_training_with_a_clear_error(
+        dataset_path: Path, tmp_path: Path, tiny_dims: tuple[int, ...], monkeypatch,
+        capsys) -> None:
+    """NaN in the data (here: a loss made NaN) ends the run at once: exit 2, one line, no
+    weights saved (they would load as NaN and drive the pusher with NaN setpoints)."""
+    from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
+
+    monkeypatch.setattr(DiffusionPolicy, "compute_loss",
+                        lambda self, *args: self.unet.parameters().__next__().sum() * np.nan)
+    out = tmp_path / "nan"
+    assert train.main(["--dataset", str(dataset_path), "--output", str(out), "--batch-size",
+                       "8", "--down-dims", *map(str, tiny_dims), "--steps", "5",
+                       "--quiet"]) == 2
+    error = capsys.readouterr().err.strip()
+    assert error.startswith("train_policy: non-finite loss") and "\n" not in error
+    assert not (out / "model.safetensors").exists()

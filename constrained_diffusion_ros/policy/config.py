@@ -9,6 +9,9 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
+MAX_LEVELS = 6  # U-Net levels at most
+MAX_WIDTH = 4096  # channels per level at most: more is a typo that would allocate gigabytes
+
 
 @dataclass(frozen=True)
 class PolicyConfig:
@@ -28,6 +31,43 @@ class PolicyConfig:
     prediction_type: str = "epsilon"
     clip_sample: bool = True
     normalizer: dict[str, dict[str, list[float]]] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        """Refuse what would load and then fail at the first observation, or allocate
+        gigabytes: every problem named at once."""
+        problems = []
+        for name in ("obs_dim", "action_dim", "n_obs_steps", "horizon", "n_action_steps",
+                     "kernel_size", "n_groups", "diffusion_step_embed_dim",
+                     "num_train_timesteps"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                problems.append(f"{name} must be a positive integer, got {value!r}")
+        if problems:
+            raise ValueError("policy config: " + "; ".join(problems))
+        dims = self.down_dims
+        if not 1 <= len(dims) <= MAX_LEVELS or not all(
+                isinstance(d, int) and 1 <= d <= MAX_WIDTH and d % self.n_groups == 0
+                for d in dims):
+            problems.append(f"down_dims must be 1 to {MAX_LEVELS} widths of at most "
+                            f"{MAX_WIDTH}, multiples of n_groups {self.n_groups}; got "
+                            f"{list(dims)}")
+        if self.horizon % 2 ** (len(dims) - 1):
+            problems.append(f"horizon {self.horizon} must be a multiple of "
+                            f"{2 ** (len(dims) - 1)} (the U-Net halves it {len(dims) - 1} times)")
+        if self.first_executed + self.n_action_steps > self.horizon:
+            problems.append(f"n_obs_steps - 1 + n_action_steps ({self.first_executed} + "
+                            f"{self.n_action_steps}) exceeds horizon {self.horizon}")
+        if self.kernel_size % 2 == 0:
+            problems.append(f"kernel_size must be odd, got {self.kernel_size}")
+        if self.prediction_type not in ("epsilon", "sample"):
+            problems.append(f"prediction_type must be epsilon or sample, got "
+                            f"{self.prediction_type!r}")
+        for key, size in (("obs", self.obs_dim), ("action", self.action_dim)):
+            stats = self.normalizer.get(key)
+            if stats is not None and any(len(stats.get(b, ())) != size for b in ("min", "max")):
+                problems.append(f"normalizer {key} needs min and max of {size} values")
+        if problems:
+            raise ValueError("policy config: " + "; ".join(problems))
 
     @property
     def global_cond_dim(self) -> int:

@@ -5,7 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from safetensors import SafetensorError
+import torch
+from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_file
 
 from constrained_diffusion_ros.policy.config import PolicyConfig
@@ -33,29 +34,39 @@ def read_config(directory: str | Path) -> PolicyConfig:
         raise ValueError(f"no {CONFIG_FILE} in {directory}: not a policy directory")
     try:
         return PolicyConfig.from_dict(json.loads(path.read_text())["policy"])
-    except (json.JSONDecodeError, KeyError, TypeError) as error:
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as error:
         raise ValueError(f"{path} is not a valid policy config: {error}") from error
 
 
 def load_policy(directory: str | Path) -> DiffusionPolicy:
-    """Rebuilds the network from the JSON config and fills it; a mismatch is a ValueError."""
+    """Rebuilds the network from the JSON config and fills it; a mismatch is a ValueError,
+    found from the weights file's header and a network without storage (meta device) before
+    anything is allocated."""
     config = read_config(directory)
-    policy = DiffusionPolicy(config)
     path = Path(directory) / WEIGHTS_FILE
     try:
-        tensors = load_file(str(path))
+        with safe_open(str(path), "pt") as weights:
+            stored = {name: tuple(weights.get_slice(name).get_shape())
+                      for name in weights.keys()}  # noqa: SIM118 (a safe_open is no dict)
     except (FileNotFoundError, SafetensorError, OSError) as error:
         raise ValueError(f"cannot read weights {path}: {error}") from error
-    expected = policy.unet.state_dict()
-    missing = sorted(set(expected) - set(tensors))
-    unexpected = sorted(set(tensors) - set(expected))
-    wrong_shape = [k for k in expected if k in tensors and tensors[k].shape != expected[k].shape]
+    with torch.device("meta"):
+        expected = {name: tuple(tensor.shape)
+                    for name, tensor in DiffusionPolicy(config).unet.state_dict().items()}
+    missing = sorted(set(expected) - set(stored))
+    unexpected = sorted(set(stored) - set(expected))
+    wrong_shape = [k for k in expected if k in stored and stored[k] != expected[k]]
     if missing or unexpected or wrong_shape:
         raise ValueError(
             f"weights in {path} do not match its config: {len(missing)} missing, "
             f"{len(unexpected)} unexpected, {len(wrong_shape)} of the wrong shape "
             f"(first: {(missing + unexpected + wrong_shape)[:3]})"
         )
+    policy = DiffusionPolicy(config)
+    try:
+        tensors = load_file(str(path))
+    except (SafetensorError, OSError) as error:
+        raise ValueError(f"cannot read weights {path}: {error}") from error
     broken = [name for name, tensor in tensors.items()
               if tensor.is_floating_point() and not bool(tensor.isfinite().all())]
     if broken:

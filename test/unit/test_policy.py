@@ -94,3 +94,20 @@ def test_weights_with_nan_are_refused(tmp_path: Path, tiny_policy: DiffusionPoli
     save_policy(tiny_policy, tmp_path)
     with pytest.raises(ValueError, match="NaN or inf"):
         load_policy(tmp_path)
+
+
+@pytest.mark.parametrize(("change", "reason"), [
+    ({"horizon": 15}, "multiple of 4"),
+    ({"n_action_steps": 20}, "exceeds horizon"),
+    ({"down_dims": [64, 128, 1_000_000]}, "down_dims"),
+    ({"kernel_size": 4}, "odd"),
+    ({"n_obs_steps": 0}, "positive integer"),
+])
+def test_a_config_that_would_fail_later_is_refused_before_any_network_is_built(
+        tmp_path: Path, tiny_policy: DiffusionPolicy, change: dict, reason: str) -> None:
+    save_policy(tiny_policy, tmp_path)
+    config = json.loads((tmp_path / "config.json").read_text())
+    config["policy"].update(change)
+    (tmp_path / "config.json").write_text(json.dumps(config))
+    with pytest.raises(ValueError, match=reason):
+        load_policy(tmp_path)

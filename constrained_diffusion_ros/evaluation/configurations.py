@@ -7,9 +7,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-import yaml
-
-from constrained_diffusion_ros.planning.config import ConstraintConfig, load_configurations
+from constrained_diffusion_ros.planning.config import (
+    ConstraintConfig,
+    load_configurations,
+    read_yaml,
+)
 
 SCENARIO_CHOICES = ("all", "paper")
 
@@ -33,7 +35,7 @@ def load_evaluated(config_dir: str | Path) -> dict[str, EvaluatedConfiguration]:
     directory = Path(config_dir)
     configs = load_configurations(directory / "configurations.yaml")
     path = directory / "evaluation.yaml"
-    document = yaml.safe_load(path.read_text()) if path.is_file() else {}
+    document = read_yaml(path) if path.is_file() else {}
     document = document or {}
     unknown = sorted(set(document) - set(configs))
     if unknown:

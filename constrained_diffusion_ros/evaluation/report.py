@@ -9,17 +9,17 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from constrained_diffusion_ros.evaluation.configurations import EvaluatedConfiguration
 from constrained_diffusion_ros.evaluation.rollout import RolloutLog
 from constrained_diffusion_ros.evaluation.runner import CellResult
 from constrained_diffusion_ros.evaluation.scenarios import Scenario
 from constrained_diffusion_ros.paths import config_dir
+from constrained_diffusion_ros.planning.config import read_yaml
 
 
 def load_paper_table(path: Path | None = None) -> dict[str, dict[str, list[float]]]:
-    return yaml.safe_load((path or config_dir() / "paper_table1.yaml").read_text())
+    return read_yaml(path or config_dir() / "paper_table1.yaml")
 
 
 def markdown_table(cells: Sequence[CellResult], scenarios: Sequence[Scenario],

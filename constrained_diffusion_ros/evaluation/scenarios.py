@@ -15,9 +15,9 @@ from functools import cache
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from constrained_diffusion_ros.paths import config_dir
+from constrained_diffusion_ros.planning.config import read_yaml
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones.area import RestrictedArea
 from constrained_diffusion_ros.zones.geometry import ZoneSet, rectangle, validate_polygon
@@ -158,10 +158,14 @@ def _zone_polygons(zones: list, where: str, directory: Path,
 
 def load_scenarios(path: str | Path | None = None) -> dict[str, Scenario]:
     path = Path(path) if path else config_dir() / "scenarios.yaml"
-    document = yaml.safe_load(path.read_text()) or {}
+    document = read_yaml(path) or {}
+    if not isinstance(document, dict):
+        raise ValueError(f"{path}: expected a mapping of scenario names to zones")
     scenarios: dict[str, Scenario] = {}
     for name, entry in document.items():
         where = f"{path.name}: scenario {name!r}"
+        if not isinstance(entry, dict):
+            raise ValueError(f"{where} must be a mapping (label, zones or plugin, motion)")
         zones, plugin, motion = entry.get("zones") or [], entry.get("plugin"), entry.get("motion")
         if zones and plugin:
             raise ValueError(f"{where} has both zones and a plugin; give one")

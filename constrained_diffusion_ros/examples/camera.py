@@ -19,11 +19,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import yaml
 from numpy.typing import ArrayLike
 from torch import Tensor
 
 from constrained_diffusion_ros.paths import config_dir
+from constrained_diffusion_ros.planning.config import read_yaml
 from constrained_diffusion_ros.zones import Bounds, RestrictedArea, ZoneSet, validate_polygon
 
 WORKSPACE_CENTRE = (256.0, 256.0)  # PushT's 512 x 512 workspace: a point every camera sees
@@ -51,7 +51,7 @@ class CameraZones(RestrictedArea):
         path = Path(config_file)
         if not path.is_absolute():
             path = config_dir() / path
-        document = yaml.safe_load(path.read_text())
+        document = read_yaml(path)
         if not isinstance(document, dict):
             raise ValueError(f"{path}: expected a mapping with image_to_workspace and zones")
         unknown = sorted(set(document) - {"image_to_workspace", "zones", "table_point"})

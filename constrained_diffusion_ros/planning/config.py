@@ -4,10 +4,14 @@ by the policy node and the evaluation alike; how a report labels them is the eva
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 from pathlib import Path
 
 import yaml
+
+FIELD_KINDS = {"bool": "true or false", "str": "text", "float": "a finite number",
+               "int": "an integer", "int | None": "an integer"}
 
 
 @dataclass(frozen=True)
@@ -27,6 +31,19 @@ class ConstraintConfig:
     denoising_steps: int | None = None
 
     def __post_init__(self) -> None:
+        for spec in fields(self):  # types as written in a YAML file: say which field is wrong
+            value, kind = getattr(self, spec.name), spec.type
+            numeric = isinstance(value, int | float) and not isinstance(value, bool)
+            ok = {"bool": isinstance(value, bool), "str": isinstance(value, str),
+                  "float": numeric and math.isfinite(value),
+                  "int": numeric and isinstance(value, int),
+                  "int | None": value is None or (numeric and isinstance(value, int))}[kind]
+            if not ok:
+                raise ValueError(f"configuration {self.name!r}: {spec.name} must be "
+                                 f"{FIELD_KINDS[kind]}, got {value!r}")
+        if self.denoising_steps is not None and self.denoising_steps < 1:
+            raise ValueError(f"configuration {self.name!r}: denoising_steps must be at least "
+                             f"1 (or left out: the training schedule's)")
         if self.push < 0 or self.margin < 0 or self.from_scratch < 0:
             raise ValueError(f"configuration {self.name!r}: push, margin and from_scratch "
                              "must be non-negative")
@@ -47,13 +64,26 @@ class ConstraintConfig:
         return (self.sampler, self.denoising_steps, self.from_scratch and self.name)
 
 
+def read_yaml(path: str | Path) -> object:
+    """A YAML file, safe-loaded (no tags that run code); any fault is one ValueError line
+    naming the file and, for a syntax error, where it is."""
+    path = Path(path)
+    try:
+        return yaml.safe_load(path.read_text())
+    except OSError as error:
+        raise ValueError(f"cannot read {path}: {error.strerror or error}") from None
+    except yaml.MarkedYAMLError as error:
+        mark = error.problem_mark
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise ValueError(f"{path}: not valid YAML{where}: {error.problem}") from None
+    except yaml.YAMLError as error:
+        raise ValueError(f"{path}: not valid YAML: {' '.join(str(error).split())}") from None
+
+
 def load_configurations(path: str | Path) -> dict[str, ConstraintConfig]:
     """Reads `name: {field: value}` entries; unknown fields are refused by name."""
     path = Path(path)
-    try:
-        document = yaml.safe_load(path.read_text()) or {}
-    except (OSError, yaml.YAMLError) as error:
-        raise ValueError(f"cannot read configurations from {path}: {error}") from None
+    document = read_yaml(path) or {}
     if not isinstance(document, dict):
         raise ValueError(f"{path}: expected a mapping of configuration names to fields")
     known = {f.name for f in fields(ConstraintConfig)} - {"name"}

@@ -61,3 +61,21 @@ def test_bad_evaluation_labels_are_refused_by_name(tmp_path: Path, text: str, fa
     (tmp_path / "evaluation.yaml").write_text(text + "\n")
     with pytest.raises(ValueError, match=fault):
         load_evaluated(tmp_path)
+
+
+@pytest.mark.parametrize(("text", "reason"), [
+    ("a: [\n", "not valid YAML at line 2"),
+    ("- a\n", "expected a mapping"),
+    ("r: {push: abc}\n", "push must be a finite number"),
+    ("x: !!python/object/apply:os.system ['echo hi']\n", "could not determine a constructor"),
+    ("x: {denoising_steps: 0}\n", "denoising_steps must be at least 1"),
+    ("x: {resample: 3}\n", "resample must be true or false"),
+    ("x: string\n", "must be a mapping of fields"),
+])
+def test_a_bad_configurations_file_is_one_line_naming_the_fault(tmp_path, text: str,
+                                                                reason: str) -> None:
+    path = tmp_path / "configurations.yaml"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=reason) as caught:
+        load_configurations(path)
+    assert "\n" not in str(caught.value)

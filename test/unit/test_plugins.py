@@ -126,7 +126,7 @@ def test_load_area_by_module_path_builds_the_class_with_the_parameters() -> None
     ("constrained_diffusion_ros.examples.camera:WORKSPACE_CENTRE", {}, "tuple is not callable"),
     (CAMERA, {"config_file": "camera_zones.yaml", "fov": 60}, "bad parameters"),
     (CAMERA, {}, "bad parameters"),
-    (CAMERA, {"config_file": "/nonexistent/camera.yaml"}, "cannot be built .FileNotFoundError"),
+    (CAMERA, {"config_file": "/nonexistent/camera.yaml"}, "cannot be built .ValueError"),
     ("no_such_entry_point", {}, f"no entry point of that name in {ENTRY_POINT_GROUP}"),
 ])
 def test_every_failure_is_one_value_error_line_naming_the_spec(

@@ -60,6 +60,17 @@ def select(available: dict, wanted: list[str], kind: str) -> list:
     return [available[name] for name in wanted]
 
 
+def reusable_cells(path: Path) -> dict[tuple[str, str], CellResult]:
+    """The cells of an earlier report, by (scenario, configuration); ValueError in one line if
+    the file is not one."""
+    try:
+        rows = json.loads(path.read_text())
+        return {(r["scenario"], r["configuration"]): CellResult(**r) for r in rows}
+    except (OSError, ValueError, TypeError, KeyError) as error:
+        raise ValueError(f"{path} is not a report to reuse ({type(error).__name__}: {error}); "
+                         f"move it away or leave out --reuse") from None
+
+
 def run(args: argparse.Namespace) -> int:
     if args.episodes < 1 or args.steps < 1:
         raise ValueError("--episodes and --steps must be positive")
@@ -69,11 +80,13 @@ def run(args: argparse.Namespace) -> int:
     policy = load_policy(args.model)
     seeds = list(range(args.first_seed, args.first_seed + args.episodes))
     output = Path(args.output)
-    output.mkdir(parents=True, exist_ok=True)
+    try:
+        output.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise ValueError(f"cannot write the report to {output}: {error.strerror}") from None
     previous = {}
     if args.reuse and (output / "results.json").is_file():
-        rows = json.loads((output / "results.json").read_text())
-        previous = {(r["scenario"], r["configuration"]): CellResult(**r) for r in rows}
+        previous = reusable_cells(output / "results.json")
     cells, started, figure, reused = [], time.monotonic(), None, 0
     pending: dict[tuple, list] = {}  # sampler key -> [(configuration, its scenarios)]
     for config in configs:

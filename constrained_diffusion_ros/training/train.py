@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 import torch
+from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
@@ -127,7 +128,13 @@ def train(args: argparse.Namespace) -> dict:
     checkpoint = output / CHECKPOINT_DIR
     step, losses = 0, []
     if args.resume and (checkpoint / "state.json").exists():
-        step, losses = load_checkpoint(checkpoint, policy, ema, optimizer, generator)
+        try:
+            step, losses = load_checkpoint(checkpoint, policy, ema, optimizer, generator)
+        except (OSError, KeyError, TypeError, RuntimeError, SafetensorError,
+                json.JSONDecodeError) as error:
+            raise ValueError(f"checkpoint in {checkpoint} is damaged ({type(error).__name__}: "
+                             f"{' '.join(str(error).split())[:200]}); remove it to start "
+                             f"afresh") from None
         print(f"resumed from {checkpoint} at step {step}")
     n_params = sum(p.numel() for p in policy.unet.parameters())
     print(f"{len(demos.episode_ends)} episodes, {len(sampler)} windows, {n_params / 1e6:.1f}M "

@@ -62,6 +62,8 @@ def test_tiny_training_lowers_the_loss_and_resumes(dataset_path: Path, tmp_path:
     weights = (out / "model.safetensors").read_bytes()
     assert train.main([*common, "--steps", "30"]) == 2  # a model there: neither flag given
     assert (out / "model.safetensors").read_bytes() == weights
+    (out / "checkpoint" / "state.json").write_text("{damaged")
+    assert train.main([*common, "--steps", "90", "--resume"]) == 2  # one line, no traceback
 
 
 def test_a_non_finite_loss_stops_training_with_a_clear_error(

@@ -23,6 +23,7 @@ import time
 from collections import OrderedDict
 
 import numpy as np
+import shapely
 import torch
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -211,6 +212,7 @@ class PolicyNode(Node):
         self.last_setpoint: PointStamped | None = None
         self.violations = 0
         self.unsound_setpoints = 0  # non-finite or outside the workspace: the pusher held
+        self.no_free_space = False  # the zones cover the whole workspace
         self.latest_pusher: np.ndarray | None = None
         self.zone_change_time: float | None = None
         self.replan_latency_ms = float("nan")
@@ -321,13 +323,13 @@ class PolicyNode(Node):
         return observation
 
     def _sendable(self, setpoint: np.ndarray) -> np.ndarray:
-        """Never a non-finite or out-of-workspace setpoint: such a one (zones that leave the
-        pusher no free space, a policy that emits NaN) is replaced by the pusher's own
-        position, held, and reported as ERROR until setpoints are sound again."""
-        x_min, y_min, x_max, y_max = self.robot.workspace
-        if np.all(np.isfinite(setpoint)) and x_min <= setpoint[0] <= x_max \
-                and y_min <= setpoint[1] <= y_max:
+        """Never a non-finite or out-of-workspace setpoint, nor any while zones leave the
+        pusher no free space: the pusher's own position is held instead, and reported as
+        ERROR until setpoints are sound again."""
+        if not self.no_free_space and np.all(np.isfinite(setpoint)) \
+                and not self.robot.outside(setpoint):
             return setpoint
+        x_min, y_min, x_max, y_max = self.robot.workspace
         self.unsound_setpoints += 1
         self.get_logger().error(f"no sound setpoint ({setpoint.tolist()}): holding the pusher",
                                 throttle_duration_sec=1.0)
@@ -537,11 +539,18 @@ class PolicyNode(Node):
     def _zones_changed(self) -> None:
         """In realtime the held setpoint is checked now and a safe one published at once."""
         self.zone_change_time = time.monotonic()
+        self.no_free_space = self._no_free_space()
         if self.controller is None:
             self._publish_markers()
             return
         self._markers_due = True
         self.controller.zones_changed(lambda safe: self._hold(safe, send_now=True))
+
+    def _no_free_space(self) -> bool:
+        """Whether the zones, grown by the pusher's radius, cover the whole workspace: then
+        no setpoint is safe, and the pusher is held where it is until space returns."""
+        grown = self.zones.snapshot().geometry.buffer(self.robot.pusher_radius)
+        return bool(shapely.box(*self.robot.workspace).difference(grown).is_empty)
 
     def _expire_zones(self) -> None:
         if self.zones.expire(self._now()):

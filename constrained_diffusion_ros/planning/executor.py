@@ -164,16 +164,19 @@ class ChunkExecutor:
     def _zones_entered(self, area: RestrictedArea | None, version: np.ndarray,
                        step: int) -> np.ndarray:
         """The one replan rule: zones changed since the plan, and the rest of the chunk now
-        lies where the planner keeps waypoints out of."""
+        lies where the planner keeps waypoints out of (or outside the workspace, where zones
+        that left no free space had pushed it)."""
         remaining = self.queue.remaining(step)
         due = np.zeros(len(remaining), dtype=bool)
         rows = np.nonzero((version != self.planned_version) & (remaining > 0))[0]
-        if area is None or len(rows) == 0:
+        if len(rows) == 0:
             return due
         count = self.n_action_steps
         waypoints = self.queue.upcoming(rows, step, count)
-        inside = self.planner.violates(torch.from_numpy(waypoints), area.select_rows(rows),
-                                       rows).numpy()
+        inside = self.planner.robot.outside(waypoints)
+        if area is not None:
+            inside |= self.planner.violates(torch.from_numpy(waypoints),
+                                            area.select_rows(rows), rows).numpy()
         due[rows] = (inside & (np.arange(count)[None] < remaining[rows, None])).any(axis=1)
         return due
 

@@ -373,18 +373,29 @@ class RealtimeController:
         if self.step is None:
             return None
         before = self.setpoint
-        after = self._update()
+        after = self._update(ask=False)
         changed = before is not None and not np.array_equal(after, before)
         if changed:
             self.stats.zone_reactions += 1
             send(after)
-        area = self.zones.area_at(self.step)
-        remaining = int(self.queue.remaining(self.step)[0])
-        if area is not None and remaining > 0:
-            rest = self.queue.upcoming(np.array([0]), self.step, remaining)
-            if self.planner.violates(torch.from_numpy(rest), area, np.array([0])).any():
-                self._ask(prefix=False)
+        if self._rest_entered():
+            self._ask(prefix=False)
+        else:
+            self._ask_if_running_out()
         return after if changed else None
+
+    def _rest_entered(self) -> bool:
+        """The rest of the chunk lies where the planner keeps waypoints out of now, or outside
+        the workspace (where zones that left no free space had pushed it)."""
+        remaining = int(self.queue.remaining(self.step)[0])
+        if remaining == 0:
+            return False
+        rest = self.queue.upcoming(np.array([0]), self.step, remaining)
+        area = self.zones.area_at(self.step)
+        if self.planner.robot.outside(rest).any():
+            return True
+        return area is not None and bool(
+            self.planner.violates(torch.from_numpy(rest), area, np.array([0])).any())
 
     def install_results(self) -> np.ndarray | None:
         """Install the plans that arrived (on the caller's thread); the new setpoint to hold, or
@@ -421,17 +432,20 @@ class RealtimeController:
     def _pusher(self) -> np.ndarray:
         return self.planner.robot.pusher(self.observations[self.step]).astype(float)
 
-    def _update(self) -> np.ndarray:
+    def _update(self, ask: bool = True) -> np.ndarray:
         """The setpoint of the newest step from the chunk in force (the one held when it has
         none), through the guard; asks for the next plan when the chunk is running out."""
-        step = self.step
-        waypoint = self.queue.at(step)[0]
+        waypoint = self.queue.at(self.step)[0]
         if np.isnan(waypoint).any():
             waypoint = self.sent if self.sent is not None else self._pusher()
-        if not self.worker.busy and self.queue.remaining(step)[0] <= self.lead:
-            self._ask(prefix=True)
+        if ask:
+            self._ask_if_running_out()
         self.setpoint = self._guarded(waypoint)
         return self.setpoint
+
+    def _ask_if_running_out(self) -> None:
+        if not self.worker.busy and self.queue.remaining(self.step)[0] <= self.lead:
+            self._ask(prefix=True)
 
     def _guarded(self, setpoint: np.ndarray) -> np.ndarray:
         """The zones in force now decide: a waypoint planned before them is moved out of them

@@ -46,6 +46,12 @@ class RobotModel:
         """Physics steps per control step."""
         return round(self.physics_hz / self.control_hz)
 
+    def outside(self, points: np.ndarray) -> np.ndarray:
+        """Bool (...): the point (..., 2) lies outside the workspace (NaN: no point, False)."""
+        x_min, y_min, x_max, y_max = self.workspace
+        points = np.asarray(points)
+        return ((points < (x_min, y_min)) | (points > (x_max, y_max))).any(axis=-1)
+
     def pusher(self, observations: np.ndarray) -> np.ndarray:
         """(..., 2) pusher positions in (..., obs_dim) observations (numpy or torch)."""
         start, stop = self.pusher_in_observation

@@ -22,6 +22,7 @@ from ros_helpers import Ros, stamp_step, step_stamp
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
+from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from msg_schemas import FRAME_ID, SERVICES, TOPICS
 from sim_bridge import AGENT_RADIUS
 
@@ -242,6 +243,7 @@ def test_zone_from_another_process_obeyed_refused_and_removed(
 
 REALTIME_PERIOD_S = 4.0  # long ticks: a setpoint between two of them was not a tick's
 PUSHER = (40.0, 470.0)  # px: where the test's observations put the pusher
+EVERYTHING_ID = 500  # a zone id no other test of the module uses (their zones are replayed)
 
 
 def test_realtime_a_zone_mid_chunk_gets_a_safe_setpoint_before_the_next_tick(
@@ -296,3 +298,62 @@ def test_realtime_a_zone_mid_chunk_gets_a_safe_setpoint_before_the_next_tick(
     assert not grown.contains(shapely.Point(*safe)), (setpoint, safe)
     assert ros.spin_until(lambda: statuses and int(values(statuses[-1]).get(
         "zone_reactions", 0)) >= 1, 2 * 0.5 + 5)
+
+
+def test_zones_that_leave_no_free_space_hold_the_pusher_and_report_an_error(
+        ros, processes, tiny_model, configurations_file):
+    """A zone over everything (from -1e30 to 1e30: clipped to the workspace, so accepted and
+    enforced): no setpoint can be safe, so the node holds the pusher where it is (never an
+    out-of-range setpoint) and says ERROR; when the zone goes, it plans again and says OK."""
+    answers: list[PointStamped] = []
+    ros.inbox("setpoint", PointStamped, answers.append)
+    reports = ros.inbox("diagnostics", DiagnosticArray)
+    markers = ros.inbox("zone_markers", MarkerArray)
+    zones = ros.publisher("zones", PolygonInstanceStamped)
+    # Observations on topics of its own: the module's simulator keeps publishing on the others.
+    private = {name: f"{name}_no_free_space" for name in ("keypoints", "pusher")}
+    keypoints_pub = ros.publisher("keypoints", PolygonStamped, private["keypoints"])
+    pusher_pub = ros.publisher("pusher", PointStamped, private["pusher"])
+    processes.start("policy_node", model=tiny_model, configurations_file=configurations_file,
+                    configuration="fast_safe", remap=private)
+    assert ros.spin_until(lambda: all(p.get_subscription_count() >= 1
+                                      for p in (keypoints_pub, pusher_pub))
+                          and zones.get_subscription_count() == 2), processes.logs()
+
+    def answer(step: int) -> tuple[np.ndarray, DiagnosticStatus]:
+        keypoints = PolygonStamped()
+        keypoints.header.stamp, keypoints.header.frame_id = step_stamp(step), FRAME_ID
+        keypoints.polygon.points = [Point32(x=256.0, y=256.0 + i, z=0.0) for i in range(9)]
+        pusher = PointStamped()
+        pusher.header = keypoints.header
+        pusher.point.x, pusher.point.y = PUSHER
+        count = len(reports)
+        keypoints_pub.publish(keypoints)
+        pusher_pub.publish(pusher)
+        assert ros.spin_until(lambda: len(reports) > count and answers
+                              and stamp_step(answers[-1].header.stamp) == step, 30.0)
+        return np.array([answers[-1].point.x, answers[-1].point.y]), reports[-1].status[0]
+
+    everything = PolygonInstanceStamped()
+    everything.header.frame_id, everything.polygon.id = FRAME_ID, EVERYTHING_ID
+    everything.polygon.polygon.points = [Point32(x=x, y=y, z=0.0) for x, y in (
+        (-1e30, -1e30), (1e30, -1e30), (1e30, 1e30), (-1e30, 1e30))]
+    zones.publish(everything)
+
+    def shows_everything() -> bool:  # (the test node's earlier zones are replayed too)
+        return bool(markers) and any(m.id == EVERYTHING_ID and m.action == m.ADD
+                                     for m in markers[-1].markers)
+
+    assert ros.spin_until(shows_everything), processes.logs()
+    # Steps of their own (from 500): no other node of the module answers these stamps.
+    for step in range(500, 503):
+        setpoint, report = answer(step)
+        assert np.array_equal(setpoint, PUSHER)  # held where it is, inside the workspace
+        assert report.level == DiagnosticStatus.ERROR
+    removal = PolygonInstanceStamped()
+    removal.header.frame_id, removal.polygon.id = FRAME_ID, EVERYTHING_ID
+    zones.publish(removal)
+    assert ros.spin_until(lambda: not shows_everything())
+    setpoint, report = answer(503)
+    assert report.level == DiagnosticStatus.OK, report.message  # space again: sound setpoints
+    assert not PUSHT_ROBOT.outside(setpoint)

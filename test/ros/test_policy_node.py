@@ -246,6 +246,18 @@ PUSHER = (40.0, 470.0)  # px: where the test's observations put the pusher
 EVERYTHING_ID = 500  # a zone id no other test of the module uses (their zones are replayed)
 
 
+def publish_observation(keypoints_pub, pusher_pub, step: int) -> None:
+    """One observation of control step `step`: a fixed T and the pusher at PUSHER."""
+    keypoints = PolygonStamped()
+    keypoints.header.stamp, keypoints.header.frame_id = step_stamp(step), FRAME_ID
+    keypoints.polygon.points = [Point32(x=256.0, y=256.0 + i, z=0.0) for i in range(9)]
+    pusher = PointStamped()
+    pusher.header = keypoints.header
+    pusher.point.x, pusher.point.y = PUSHER
+    keypoints_pub.publish(keypoints)
+    pusher_pub.publish(pusher)
+
+
 def test_realtime_a_zone_mid_chunk_gets_a_safe_setpoint_before_the_next_tick(
         ros, processes, tiny_model, configurations_file):
     """The realtime node on its own clock: the test feeds it observations, waits for a tick
@@ -267,14 +279,7 @@ def test_realtime_a_zone_mid_chunk_gets_a_safe_setpoint_before_the_next_tick(
                           and graph.count_publishers(TOPICS["setpoint"].name) >= 1)
 
     def observe(step: int) -> None:
-        keypoints = PolygonStamped()
-        keypoints.header.stamp, keypoints.header.frame_id = step_stamp(step), FRAME_ID
-        keypoints.polygon.points = [Point32(x=256.0, y=256.0 + i, z=0.0) for i in range(9)]
-        pusher = PointStamped()
-        pusher.header = keypoints.header
-        pusher.point.x, pusher.point.y = PUSHER
-        keypoints_pub.publish(keypoints)
-        pusher_pub.publish(pusher)
+        publish_observation(keypoints_pub, pusher_pub, step)
 
     step = 0
     while not plans:  # observations until a plan is in (the first tick holds the pusher)
@@ -321,15 +326,8 @@ def test_zones_that_leave_no_free_space_hold_the_pusher_and_report_an_error(
                           and zones.get_subscription_count() == 2), processes.logs()
 
     def answer(step: int) -> tuple[np.ndarray, DiagnosticStatus]:
-        keypoints = PolygonStamped()
-        keypoints.header.stamp, keypoints.header.frame_id = step_stamp(step), FRAME_ID
-        keypoints.polygon.points = [Point32(x=256.0, y=256.0 + i, z=0.0) for i in range(9)]
-        pusher = PointStamped()
-        pusher.header = keypoints.header
-        pusher.point.x, pusher.point.y = PUSHER
         count = len(reports)
-        keypoints_pub.publish(keypoints)
-        pusher_pub.publish(pusher)
+        publish_observation(keypoints_pub, pusher_pub, step)
         assert ros.spin_until(lambda: len(reports) > count and answers
                               and stamp_step(answers[-1].header.stamp) == step, 30.0)
         return np.array([answers[-1].point.x, answers[-1].point.y]), reports[-1].status[0]

@@ -178,7 +178,7 @@ def run_trial(args: argparse.Namespace) -> dict:
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=context)
-    make_figures(output, scenario, args)
+    make_figures(output, scenario, args, received)
     return metadata
 
 
@@ -208,15 +208,21 @@ def trial_results(received: dict, scenario, args: argparse.Namespace) -> dict:
     return cell_metrics(log, np.array([0]), scenario)
 
 
-def make_figures(output: Path, scenario, args: argparse.Namespace) -> None:
-    """PNG strip and GIF, drawn from the bag as recorded (not from memory)."""
+def make_figures(output: Path, scenario, args: argparse.Namespace, received: dict) -> None:
+    """PNG strip and GIF, drawn from the bag as recorded; from the messages received live if
+    the bag lacks some (said on stderr: the trial's results stand, the bag is incomplete)."""
     import imageio.v3 as iio
 
     from constrained_diffusion_ros.evaluation.bags import read_trial
     from constrained_diffusion_ros.evaluation.report import plot_frames
     from sim_bridge import render_scene
 
-    log = trial_log(read_trial(output / "bag"), args.seed, args.steps)
+    try:
+        log = trial_log(read_trial(output / "bag"), args.seed, args.steps)
+    except RuntimeError as error:
+        print(f"trial: warning: the bag is incomplete ({error}); figures drawn from the "
+              f"messages received live", file=sys.stderr)
+        log = trial_log(received, args.seed, args.steps)
     shown = scenario or Scenario("none", "no zones", ())  # a scenario without zones
     plot_frames(log, 0, shown, output / "frames.png",
                 f"{args.configuration} on {shown.label}, seed {args.seed}")

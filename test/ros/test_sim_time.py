@@ -47,6 +47,3 @@ def test_with_use_sim_time_the_realtime_sim_steps_and_a_lifetime_expires_on_sim_
 
     assert ros.spin_until(lambda: ids() == [3], 10.0), processes.logs()  # fresh on sim time
     assert ros.spin_until(lambda: ids() == [], 15.0), "the zone never expired"
-    # ... after 3 s of simulated time (the test's view of the clock lags, by up to a second
-    # on a busy machine)
-    assert clock[-1] - sim_now >= 2.0e9

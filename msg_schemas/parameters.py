@@ -20,7 +20,7 @@ from rcl_interfaces.msg import (
 )
 from rclpy.node import Node
 
-from msg_schemas.contract import SERVICES, TOPICS
+from msg_schemas.contract import NAMESPACE, SERVICES, TOPICS
 
 Value = bool | int | float | str | list
 
@@ -112,7 +112,8 @@ def usage(node_name: str, summary: str, params: Sequence[Param]) -> str:
         start = ", read at start" if param.read_only else ""
         lines.append(f"  {param.name} (default {param.default!r}{bounds}{choices}{start})")
         lines.append(f"      {param.description}")
-    lines += ["", "topics and services (relative: in namespace /pusht unless -r __ns:=/other):"]
+    lines += ["", f"topics and services (relative: in namespace /{NAMESPACE} unless -r "
+              f"__ns:=/other):"]
     for endpoint in TOPICS.values():
         role = "publishes" if endpoint.publisher == node_name else \
             "subscribes" if node_name in endpoint.subscribers else None

@@ -22,7 +22,6 @@ from tqdm import tqdm
 
 from constrained_diffusion_ros.evaluation.runner import (
     DEFAULT_SEEDS,
-    cell_metrics,
     evaluate_configurations,
 )
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
@@ -73,24 +72,25 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"unknown scenarios or configurations: {unknown}")
     scenarios = [known_scenarios[n] for n in args.scenarios]
     policy = load_policy(args.model)
-    seeds = list(range(100000, 100000 + args.episodes))
+    seeds = list(range(DEFAULT_SEEDS[0], DEFAULT_SEEDS[0] + args.episodes))
     runs = [(c, d, h) for c in args.configs for d in args.delays
             for h in (HANDOVERS if d > 0 else HANDOVERS[:1])]
     output = Path(args.output)
     output.mkdir(parents=True, exist_ok=True)
     rows = kept_rows(output / "latency.json", args.configs)
     for name, delay, handover in tqdm(runs, desc="latency", unit="run"):
-        _, log, first_rows = evaluate_configurations(
+        cells, log, first_rows = evaluate_configurations(
             policy, [known_configs[name]], [scenarios], seeds, args.steps, progress=False,
             delay=delay, handover=handover)
+        by_scenario = {cell.scenario: cell for cell in cells}
         for scenario in scenarios:
             start = first_rows[(scenario.name, name)]
             block = np.arange(start, start + len(seeds))
-            metrics = cell_metrics(log, block, scenario)
+            cell = by_scenario[scenario.name]
             jump, within = handover_jumps(log.commanded[block], log.executed_chunk[block])
             rows.append({"configuration": name, "scenario": scenario.name, "delay": delay,
-                         "handover": handover if delay else "none", "s": metrics["s"],
-                         "r": metrics["r"], "r_body": metrics["r_body"],
+                         "handover": handover if delay else "none", "s": cell.s,
+                         "r": cell.r, "r_body": cell.r_body,
                          "jump_at_handover_px": jump, "step_within_chunk_px": within,
                          "episodes": len(seeds)})
         (output / "latency.json").write_text(json.dumps(rows, indent=1) + "\n")  # as it goes

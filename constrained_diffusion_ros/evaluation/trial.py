@@ -128,7 +128,8 @@ def run_trial(args: argparse.Namespace) -> dict:
             children.start("zone_publisher", scenario=args.scenario,
                            scenarios_file=args.scenarios_file,
                            keepout_resolution=args.keepout_grid)
-        children.start("policy_node", threads=POLICY_THREADS, model=args.model,
+        children.start("policy_node", threads=POLICY_THREADS, torch_threads=POLICY_THREADS,
+                       model=args.model,
                        configuration=args.configuration,
                        configurations_file=args.configurations_file, **plug_in)
 

@@ -17,6 +17,7 @@ zones in force stay in force. Counters of both are in the node's diagnostics (`/
 from __future__ import annotations
 
 import gc
+import math
 import sys
 import threading
 import time
@@ -162,7 +163,8 @@ class PolicyNode(Node):
                                workspace=self.robot.workspace)
         self.zone_counts = {"zone_messages": 0, "zones_applied": 0, "zones_refused": 0,
                             "zones_stale": 0, "zone_batches": 0}
-        self.generator = torch.Generator().manual_seed(values["noise_seed"])
+        self.noise_seed = values["noise_seed"]
+        self.generator = torch.Generator().manual_seed(self.noise_seed)
         self.controller: RealtimeController | None = None
         self._use_configuration(values["configuration"])
         self.add_on_set_parameters_callback(self._on_parameters)
@@ -196,7 +198,7 @@ class PolicyNode(Node):
             wake = self.create_guard_condition(self._on_plan_ready)
             self.controller = RealtimeController(
                 self.planner, self.zones, self.rate_hz, None if self.lead < 0 else self.lead,
-                self.soft, self.get_parameter("noise_seed").value, wake.trigger)
+                self.soft, self.noise_seed, wake.trigger)
             self.clock = ControlClock(self.rate_hz, self._on_tick)
             if not self.clock.realtime:
                 self.get_logger().warning(
@@ -298,7 +300,7 @@ class PolicyNode(Node):
         if observation is None:
             return
         if stamp < self.last_stamp or stamp == 0.0:  # the simulator was reset: a new episode
-            self.chunk_executor.reset(self.get_parameter("noise_seed").value)
+            self.chunk_executor.reset(self.noise_seed)
         self.last_stamp = stamp
         step = step_of_stamp(stamp_msg, self.robot.control_hz)
         started = time.perf_counter()
@@ -486,7 +488,8 @@ class PolicyNode(Node):
             return
         ids = [f"keepout/{k}" for k in range(len(polygons))]
         removed = [(old, []) for old in self.keepout_ids if old not in ids]
-        outcome = self.zones.apply([*removed, *zip(ids, polygons)], self._now())
+        # A mask's pieces are not messages: the caps on zone messages do not refuse them.
+        outcome = self.zones.apply([*removed, *zip(ids, polygons)], self._now(), capped=False)
         self.keepout_ids = [i for i in ids if i not in dict(outcome.refused)]
         self._count_zones(outcome, 0)
         self.get_logger().info(f"keep-out mask {info.width} x {info.height} cells: "
@@ -548,9 +551,15 @@ class PolicyNode(Node):
 
     def _no_free_space(self) -> bool:
         """Whether the zones, grown by the pusher's radius, cover the whole workspace: then
-        no setpoint is safe, and the pusher is held where it is until space returns."""
-        grown = self.zones.snapshot().geometry.buffer(self.robot.pusher_radius)
-        return bool(shapely.box(*self.robot.workspace).difference(grown).is_empty)
+        no setpoint is safe, and the pusher is held where it is until space returns. Grown
+        by r, an area A of perimeter P covers at most A + P r + pi r^2: below the workspace's
+        area there is space left for sure, and nothing is grown (the zone callback is on the
+        way to the safe setpoint)."""
+        union, radius = self.zones.snapshot().geometry, self.robot.pusher_radius
+        workspace = shapely.box(*self.robot.workspace)
+        if union.area + union.length * radius + math.pi * radius**2 < workspace.area:
+            return False
+        return bool(workspace.difference(union.buffer(radius)).is_empty)
 
     def _expire_zones(self) -> None:
         if self.zones.expire(self._now()):

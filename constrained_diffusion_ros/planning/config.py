@@ -10,8 +10,19 @@ from pathlib import Path
 
 import yaml
 
-FIELD_KINDS = {"bool": "true or false", "str": "text", "float": "a finite number",
-               "int": "an integer", "int | None": "an integer"}
+
+def _number(value: object) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+# Field annotation -> (check, what it must be): the one table the type check reads.
+FIELD_KINDS = {
+    "bool": (lambda v: isinstance(v, bool), "true or false"),
+    "str": (lambda v: isinstance(v, str), "text"),
+    "float": (lambda v: _number(v) and math.isfinite(v), "a finite number"),
+    "int": (lambda v: _number(v) and isinstance(v, int), "an integer"),
+    "int | None": (lambda v: v is None or (_number(v) and isinstance(v, int)), "an integer"),
+}
 
 
 @dataclass(frozen=True)
@@ -32,15 +43,11 @@ class ConstraintConfig:
 
     def __post_init__(self) -> None:
         for spec in fields(self):  # types as written in a YAML file: say which field is wrong
-            value, kind = getattr(self, spec.name), spec.type
-            numeric = isinstance(value, int | float) and not isinstance(value, bool)
-            ok = {"bool": isinstance(value, bool), "str": isinstance(value, str),
-                  "float": numeric and math.isfinite(value),
-                  "int": numeric and isinstance(value, int),
-                  "int | None": value is None or (numeric and isinstance(value, int))}[kind]
-            if not ok:
-                raise ValueError(f"configuration {self.name!r}: {spec.name} must be "
-                                 f"{FIELD_KINDS[kind]}, got {value!r}")
+            check, text = FIELD_KINDS[spec.type]
+            value = getattr(self, spec.name)
+            if not check(value):
+                raise ValueError(f"configuration {self.name!r}: {spec.name} must be {text}, "
+                                 f"got {value!r}")
         if self.denoising_steps is not None and self.denoising_steps < 1:
             raise ValueError(f"configuration {self.name!r}: denoising_steps must be at least "
                              f"1 (or left out: the training schedule's)")

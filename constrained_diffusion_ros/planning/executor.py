@@ -164,8 +164,7 @@ class ChunkExecutor:
     def _zones_entered(self, area: RestrictedArea | None, version: np.ndarray,
                        step: int) -> np.ndarray:
         """The one replan rule: zones changed since the plan, and the rest of the chunk now
-        lies where the planner keeps waypoints out of (or outside the workspace, where zones
-        that left no free space had pushed it)."""
+        lies where the planner keeps waypoints out of (`violates`)."""
         remaining = self.queue.remaining(step)
         due = np.zeros(len(remaining), dtype=bool)
         rows = np.nonzero((version != self.planned_version) & (remaining > 0))[0]
@@ -173,10 +172,8 @@ class ChunkExecutor:
             return due
         count = self.n_action_steps
         waypoints = self.queue.upcoming(rows, step, count)
-        inside = self.planner.robot.outside(waypoints)
-        if area is not None:
-            inside |= self.planner.violates(torch.from_numpy(waypoints),
-                                            area.select_rows(rows), rows).numpy()
+        zones = None if area is None else area.select_rows(rows)
+        inside = self.planner.violates(torch.from_numpy(waypoints), zones, rows).numpy()
         due[rows] = (inside & (np.arange(count)[None] < remaining[rows, None])).any(axis=1)
         return due
 

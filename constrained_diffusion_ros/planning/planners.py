@@ -51,7 +51,8 @@ class ChunkPlanner(Protocol):
     def violates(self, waypoints: Tensor, zones: RestrictedArea | None,
                  rows: np.ndarray) -> Tensor:
         """Bool (R, N): which waypoints (R, N, 2) of rows `rows` lie where its plans keep
-        waypoints out of."""
+        waypoints out of, or outside the workspace (where zones that left no free space may
+        have pushed them)."""
         ...
 
     def guard(self, zones: RestrictedArea | None, observations: np.ndarray,
@@ -116,9 +117,10 @@ class ConstrainedPlanner:
 
     def violates(self, waypoints: Tensor, zones: RestrictedArea | None,
                  rows: np.ndarray | None = None) -> Tensor:
+        outside = torch.from_numpy(self.robot.outside(waypoints.numpy()))
         if zones is None or not self.config.constrains:
-            return torch.zeros(waypoints.shape[:-1], dtype=torch.bool)
-        return self.effective_area(zones).contains(waypoints)
+            return outside
+        return outside | self.effective_area(zones).contains(waypoints)
 
     def keep_out(self, zones: RestrictedArea | None, points: np.ndarray) -> np.ndarray:
         """(N, 2) waypoints planned before `zones` came: those inside the area its plans keep
@@ -210,9 +212,9 @@ class MixedPlanner:
 
     def violates(self, waypoints: Tensor, zones: RestrictedArea | None,
                  rows: np.ndarray) -> Tensor:
-        inside = torch.zeros(waypoints.shape[:-1], dtype=torch.bool)
+        inside = torch.from_numpy(self.robot.outside(waypoints.numpy()))
         for planner, mine in self._by_config(rows) if zones is not None else ():
-            inside[mine] = planner.violates(waypoints[mine], zones.select_rows(mine))
+            inside[mine] |= planner.violates(waypoints[mine], zones.select_rows(mine))
         return inside
 
     def guard(self, zones: RestrictedArea | None, observations: np.ndarray,

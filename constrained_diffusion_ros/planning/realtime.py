@@ -305,8 +305,8 @@ class RealtimeController:
         self.generation = 0
         self.observations: dict[int, np.ndarray] = {}
         self.step: int | None = None  # the newest observation's control step
-        self.sent: np.ndarray | None = None  # (2,) the setpoint shielded last
-        self.setpoint: np.ndarray | None = None  # (2,) what `tick` sends; replaced, never changed
+        self.setpoint: np.ndarray | None = None  # (2,) shielded last, what `tick` sends;
+        # replaced, never changed in place
         self.plan_seconds = 0.0  # running estimate of one planning call
         self.stats = ControllerStats()
         self._results: list[PlanResult] = []
@@ -332,7 +332,7 @@ class RealtimeController:
         self.generation += 1
         self.queue.clear()
         self.observations.clear()
-        self.step, self.sent, self.setpoint = None, None, None
+        self.step, self.setpoint = None, None
         self.planner.reset()
         self.worker.reseed(self.noise_seed)
 
@@ -385,17 +385,14 @@ class RealtimeController:
         return after if changed else None
 
     def _rest_entered(self) -> bool:
-        """The rest of the chunk lies where the planner keeps waypoints out of now, or outside
-        the workspace (where zones that left no free space had pushed it)."""
+        """The rest of the chunk lies where the planner keeps waypoints out of now."""
         remaining = int(self.queue.remaining(self.step)[0])
-        if remaining == 0:
-            return False
         rest = self.queue.upcoming(np.array([0]), self.step, remaining)
-        area = self.zones.area_at(self.step)
-        if self.planner.robot.outside(rest).any():
-            return True
-        return area is not None and bool(
-            self.planner.violates(torch.from_numpy(rest), area, np.array([0])).any())
+        return remaining > 0 and self._violates(rest)
+
+    def _violates(self, waypoints: np.ndarray) -> bool:
+        return bool(self.planner.violates(torch.from_numpy(waypoints),
+                                          self.zones.area_at(self.step), np.array([0])).any())
 
     def install_results(self) -> np.ndarray | None:
         """Install the plans that arrived (on the caller's thread); the new setpoint to hold, or
@@ -413,13 +410,10 @@ class RealtimeController:
                 self.stats.plans_dropped += 1
                 continue
             chunk = result.chunk[None]
-            if job.zone_version != self.zones.version_at(self.step):
-                area = self.zones.area_at(self.step)
-                if area is not None and self.planner.violates(
-                        torch.from_numpy(chunk), area, np.array([0])).any():
-                    self.stats.plans_dropped += 1  # planned before the zones that it enters
-                    self._ask(prefix=False)
-                    continue
+            if job.zone_version != self.zones.version_at(self.step) and self._violates(chunk):
+                self.stats.plans_dropped += 1  # planned before the zones that it enters
+                self._ask(prefix=False)
+                continue
             self.queue.install(np.array([0]), chunk, job.step, self.step)
             self.stats.plans_installed += 1
         return self._update() if self.step is not None else None
@@ -437,7 +431,7 @@ class RealtimeController:
         none), through the guard; asks for the next plan when the chunk is running out."""
         waypoint = self.queue.at(self.step)[0]
         if np.isnan(waypoint).any():
-            waypoint = self.sent if self.sent is not None else self._pusher()
+            waypoint = self.setpoint if self.setpoint is not None else self._pusher()
         if ask:
             self._ask_if_running_out()
         self.setpoint = self._guarded(waypoint)
@@ -454,8 +448,7 @@ class RealtimeController:
         latest = self.observations[self.step][None]
         setpoint = np.asarray(setpoint, float)[None]
         setpoint = self.planner.keep_out(area, setpoint)
-        self.sent = self.planner.guard(area, latest, setpoint, self.step)[0]
-        return self.sent
+        return self.planner.guard(area, latest, setpoint, self.step)[0]
 
     def _history(self) -> torch.Tensor:
         frames, latest = [], self.observations[self.step]

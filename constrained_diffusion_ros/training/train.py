@@ -23,7 +23,7 @@ from tqdm import tqdm
 from constrained_diffusion_ros.policy.config import PolicyConfig
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.normalizer import MinMaxNormalizer
-from constrained_diffusion_ros.policy.weights import save_policy
+from constrained_diffusion_ros.policy.weights import WEIGHTS_FILE, save_policy
 from constrained_diffusion_ros.training.dataset import WindowSampler, load_demonstrations
 
 CHECKPOINT_DIR = "checkpoint"
@@ -212,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 2
     output = Path(args.output)
-    if (output / "model.safetensors").exists() and not (args.resume or args.overwrite):
+    if (output / WEIGHTS_FILE).exists() and not (args.resume or args.overwrite):
         print(f"train_policy: {output} holds a model already; pass --resume to continue its "
               f"checkpoint, --overwrite to replace it, or another --output", file=sys.stderr)
         return 2

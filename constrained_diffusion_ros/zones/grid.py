@@ -45,10 +45,9 @@ def _mask(values: ArrayLike, width: int | None, height: int | None) -> np.ndarra
         raise ValueError(f"grid of shape {grid.shape} is not {width} x {height} (W x H)")
     if grid.size and not np.issubdtype(grid.dtype, np.integer):
         raise ValueError(f"grid values must be integers, got {grid.dtype}")
-    grid = grid.astype(np.int16)
-    if grid.size and (grid.min() < -1 or grid.max() > 100):
+    if grid.size and (grid.min() < -1 or grid.max() > 100):  # before narrowing: no wrap-around
         raise ValueError("grid values must lie in [-1, 100] (OccupancyGrid)")
-    return grid
+    return grid.astype(np.int16)
 
 
 def _check_cells(resolution: float, origin: Sequence[float]) -> tuple[float, float, float]:
@@ -121,7 +120,7 @@ def grid_polygons(values: ArrayLike, resolution: float, origin: Sequence[float] 
     union = shapely.union_all(boxes)
     if workspace is not None:
         union = union.intersection(shapely.box(*workspace))
-    union = shapely.orient_polygons(shapely.simplify(union, 0.0), exterior_cw=False)
+    union = shapely.simplify(union, 0.0)
     parts = [p for p in shapely.get_parts(union) if isinstance(p, shapely.Polygon) and p.area > 0]
     pieces = [piece for part in parts for piece in split_holes(part)]
     return [np.asarray(shapely.orient_polygons(p, exterior_cw=False).exterior.coords)[:-1]

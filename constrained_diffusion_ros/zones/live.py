@@ -79,7 +79,7 @@ class LiveZones:
 
     def upsert(
         self, zone_id: ZoneId, vertices: ArrayLike, now: float, lifetime: float | None = None,
-        stamp: float | None = None,
+        stamp: float | None = None, capped: bool = True,
     ) -> bool:
         """Add or replace a zone; empty vertices remove it (the ROS convention). Returns False
         for a zone whose lifetime had passed before it came (a stale replay: nothing changes).
@@ -88,6 +88,8 @@ class LiveZones:
         age counts from `stamp` (when the zone was published, as nav2's collision monitor
         does), from `now` if there is none; a stamp from the future counts as now.
         Invalid vertices raise ValueError before anything changes, so the zones in force stay.
+        The caps bound what messages may ask for; `capped=False` is for zones the node derives
+        itself (a keep-out mask's pieces), which it does not refuse for their number or size.
         """
         if len(vertices) == 0:
             self.remove(zone_id)
@@ -98,7 +100,7 @@ class LiveZones:
             else math.inf
         if expires_at <= now:
             return False
-        if len(vertices) > self.max_vertices:
+        if capped and len(vertices) > self.max_vertices:
             raise ValueError(f"zone {zone_id!r}: {len(vertices)} vertices, more than the "
                              f"{self.max_vertices} allowed")
         polygon = validate_polygon(vertices, f"zone {zone_id!r}", self.workspace)
@@ -107,7 +109,7 @@ class LiveZones:
         vertices = np.asarray(shapely.get_parts(polygon)[0].exterior.coords)[:-1]
         with self._lock:
             previous = self._zones.get(zone_id)
-            if previous is None and len(self._zones) >= self.max_zones:
+            if capped and previous is None and len(self._zones) >= self.max_zones:
                 raise ValueError(f"zone {zone_id!r}: {self.max_zones} zones in force already "
                                  f"(the cap); remove one first")
             self._zones[zone_id] = _Zone(polygon, vertices, expires_at)
@@ -116,7 +118,7 @@ class LiveZones:
         return True
 
     def apply(self, updates: Iterable[Update], now: float,
-              lifetime: float | None = None) -> BatchOutcome:
+              lifetime: float | None = None, capped: bool = True) -> BatchOutcome:
         """A batch of messages (id, vertices[, stamp]) as they came: coalesced to the last per
         id, each applied as `upsert` would; a refused one leaves that id as it was."""
         updates = list(updates)
@@ -125,7 +127,7 @@ class LiveZones:
         before = self._version
         for zone_id, (vertices, stamp) in latest.items():
             try:
-                fresh = self.upsert(zone_id, vertices, now, lifetime, stamp)
+                fresh = self.upsert(zone_id, vertices, now, lifetime, stamp, capped)
             except ValueError as error:
                 outcome.refused.append((zone_id, str(error)))
             else:

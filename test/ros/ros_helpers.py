@@ -31,11 +31,19 @@ __all__ = [
     "NodeProcesses",
     "Ros",
     "random_domain_id",
+    "shown_zone_ids",
     "stamp_ns",
     "stamp_step",
     "step_ns",
     "step_stamp",
 ]
+
+
+def shown_zone_ids(markers: list) -> list[int] | None:
+    """Zone ids (marker ids) in the latest of the policy's zone markers; None before any."""
+    if not markers:
+        return None
+    return sorted(m.id for m in markers[-1].markers if m.action == m.ADD)
 
 
 def stamp_ns(stamp) -> int:

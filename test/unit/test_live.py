@@ -68,6 +68,10 @@ def test_caps_refuse_with_a_reason_and_keep_the_zones_in_force() -> None:
     assert outcome.applied == 0 and not outcome.changed and live.ids == [1, 2]
     outcome = live.apply([(1, []), (3, rectangle(4, 0, 5, 1))], now=0.0)  # room made first
     assert outcome.refused == [] and live.ids == [2, 3]
+    # Zones the node derives itself (a keep-out mask's pieces) are not held to the caps.
+    outcome = live.apply([("keepout/0", hexagon), ("keepout/1", rectangle(8, 0, 9, 1))],
+                         now=0.0, capped=False)
+    assert outcome.refused == [] and live.ids == [2, 3, "keepout/0", "keepout/1"]
 
 
 def test_lifetime_counts_from_the_stamp_so_a_replayed_stale_zone_stays_gone() -> None:

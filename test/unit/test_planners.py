@@ -134,3 +134,18 @@ def test_planner_projection_never_leaves_the_workspace_for_a_zone_on_the_wall(
         assert not band.contains(chunks).any()
         assert torch.all(chunks >= clearance) and torch.all(chunks <= 512.0 - clearance)
         assert torch.all(chunks[..., 0] >= 256.0 + clearance)
+
+
+def test_a_waypoint_outside_the_workspace_violates_with_or_without_zones(
+        tiny_policy: DiffusionPolicy) -> None:
+    """Where zones that left no free space pushed a chunk, it is replanned once they go."""
+    waypoints = torch.tensor([[[-5.0, 30.0], [30.0, 30.0], [256.0, 256.0]]],
+                             dtype=torch.float64)
+    for config in (ddim("none"), ddim("p", project=True)):
+        planner = planner_for(tiny_policy, config)
+        assert planner.violates(waypoints, None).tolist() == [[True, False, False]]
+    projected = planner_for(tiny_policy, ddim("p", project=True))
+    assert projected.violates(waypoints, CENTRE).tolist() == [[True, False, True]]
+    mixed = MixedPlanner(tiny_policy, [ddim("none"), ddim("p", project=True)], PUSHT_ROBOT,
+                         np.array([0]))
+    assert mixed.violates(waypoints, None, np.array([0])).tolist() == [[True, False, False]]

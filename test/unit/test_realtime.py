@@ -68,10 +68,11 @@ def test_the_committed_prefix_is_the_chunk_in_force_at_the_steps_before_the_plan
 
 
 def test_the_background_planner_plans_the_newest_job_on_its_own_thread() -> None:
-    release, results, threads = threading.Event(), [], []
+    release, started, results, threads = threading.Event(), threading.Event(), [], []
 
     def plan(job: PlanJob, generator: torch.Generator) -> np.ndarray:
         threads.append(threading.get_ident())
+        started.set()
         release.wait(5)
         return np.full((16, 2), float(job.generation))
 
@@ -80,8 +81,7 @@ def test_the_background_planner_plans_the_newest_job_on_its_own_thread() -> None
     try:
         job = PlanJob(1, 0, torch.zeros(1, 2, 20), None, 0, None)
         worker.submit(job)
-        while not threads:  # the first job has started
-            threading.Event().wait(0.001)
+        assert started.wait(5)  # the first job has started
         assert worker.busy
         for generation in (2, 3):  # queued while busy: only the newest is planned
             worker.submit(PlanJob(generation, 0, job.observations, None, 0, None))
@@ -96,19 +96,23 @@ def test_the_background_planner_plans_the_newest_job_on_its_own_thread() -> None
 
 
 def test_a_planning_error_is_kept_and_the_worker_keeps_serving() -> None:
-    calls, done = [], threading.Semaphore(0)
+    calls, done, failed = [], threading.Semaphore(0), threading.Event()
 
     def plan(job: PlanJob, generator: torch.Generator) -> np.ndarray:
         calls.append(job.generation)
         if job.generation == 1:
+            failed.set()
             raise RuntimeError("boom")
         return np.zeros((16, 2))
 
     worker = BackgroundPlanner(plan, lambda r: done.release())
     try:
         worker.submit(PlanJob(1, 0, torch.zeros(1, 2, 20), None, 0, None))
-        while worker.error is None:
-            threading.Event().wait(0.001)
+        assert failed.wait(5)
+        for _ in range(500):  # the error is kept once the plan has raised
+            if worker.error is not None:
+                break
+            threading.Event().wait(0.01)
         worker.submit(PlanJob(2, 0, torch.zeros(1, 2, 20), None, 0, None))
         assert done.acquire(timeout=5)
         assert isinstance(worker.error, RuntimeError) and calls == [1, 2]
@@ -183,17 +187,36 @@ def installed(controller: RealtimeController) -> None:
     controller.install_results()
 
 
+def held_planner(policy: DiffusionPolicy) -> tuple[ConstrainedPlanner, threading.Event,
+                                                  threading.Event]:
+    """A planner whose plans wait for `release` (and say `started`): a plan held in flight
+    while the test moves the controller on, whatever the machine's speed."""
+    started, release = threading.Event(), threading.Event()
+    planner = ConstrainedPlanner(policy, SAFE, PUSHT_ROBOT)
+    plan = planner.plan
+
+    def held_plan(*args, **kwargs):
+        started.set()
+        release.wait(5)
+        return plan(*args, **kwargs)
+
+    planner.plan = held_plan
+    return planner, started, release
+
+
 def test_the_controller_installs_a_late_plan_without_the_steps_that_passed(
         tiny_policy: DiffusionPolicy) -> None:
-    controller = RealtimeController(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT),
-                                    LiveZones(), rate_hz=10.0)
+    planner, started, release = held_planner(tiny_policy)
+    controller = RealtimeController(planner, LiveZones(), rate_hz=10.0)
     try:
         assert controller.tick() is None  # nothing observed yet: nothing to send
         controller.observe(0, observation_with_pusher(100, 100))
         held = controller.tick()  # no chunk yet: the pusher held where it is; plan asked
         np.testing.assert_allclose(held, [100, 100])
+        assert started.wait(5)
         for step in (1, 2, 3):  # the plan takes three steps to come in
             controller.observe(step, observation_with_pusher(100, 100))
+        release.set()
         installed(controller)
         assert controller.stats.plans_installed == 1
         assert controller.queue.skipped == 3
@@ -205,9 +228,9 @@ def test_the_controller_installs_a_late_plan_without_the_steps_that_passed(
 
 def test_a_zone_arriving_mid_chunk_gets_a_safe_setpoint_before_the_next_tick(
         tiny_policy: DiffusionPolicy) -> None:
-    zones = LiveZones()
+    zones = LiveZones()  # lead 1: no plan asked for the chunk running out, however slow plans
     controller = RealtimeController(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT), zones,
-                                    rate_hz=10.0)
+                                    rate_hz=10.0, lead=1)
     try:
         controller.observe(0, observation_with_pusher(200, 200))
         controller.tick()
@@ -231,17 +254,8 @@ def test_a_zone_arriving_mid_chunk_gets_a_safe_setpoint_before_the_next_tick(
 def test_a_new_configuration_drops_the_plan_in_flight(tiny_policy: DiffusionPolicy) -> None:
     """The first configuration's plan is held in flight until the configuration has changed:
     its result is dropped (generation counter) and the new configuration's plan goes in."""
-    started, release = threading.Event(), threading.Event()
-    old = ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT)
-    plan = old.plan
-
-    def held_plan(*args, **kwargs):
-        started.set()
-        release.wait(5)
-        return plan(*args, **kwargs)
-
-    old.plan = held_plan
-    controller = RealtimeController(old, LiveZones(), rate_hz=10.0)
+    old, started, release = held_planner(tiny_policy)
+    controller = RealtimeController(old, LiveZones(), rate_hz=10.0, lead=1)
     try:
         controller.observe(0, observation_with_pusher(100, 100))
         controller.tick()  # a plan asked for under the first configuration
@@ -292,6 +306,8 @@ def test_a_clock_held_up_drops_the_ticks_it_missed_instead_of_bursting() -> None
     try:
         assert resumed.wait(5)
         missed = clock.missed
+        threading.Event().wait(0.05)  # 5 more periods: about 5 ticks, not the 30 missed
+        ticks = clock.ticks
     finally:
         clock.shutdown()
-    assert missed >= 20
+    assert missed >= 20 and ticks < 15

@@ -350,7 +350,9 @@ class ZoneSet(RestrictedArea):
         if self.is_empty:
             return torch.full(p.shape[:-1], torch.inf, dtype=p.dtype, device=p.device)
         dist, *_ = self._nearest(p)
-        return torch.where(self._inside(p), -dist, dist)
+        # A boundary point the even-odd test counts inside is inside (negative), not at -0.0:
+        # else project_out(margin=0) would leave it where `contains` still sees it.
+        return torch.where(self._inside(p), -dist.clamp_min(torch.finfo(dist.dtype).tiny), dist)
 
     def _query(self, p: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """For a non-empty set: signed distance (...), outward unit direction (..., 2), nearest

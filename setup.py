@@ -41,6 +41,7 @@ setup(
             "sim_node = sim_bridge.sim_node:main",
             f"zone_publisher = {PACKAGE}.nodes.zone_publisher:main",
             f"recorder = {PACKAGE}.nodes.recorder:main",
+            f"recover_bag = {PACKAGE}.evaluation.bags:main",
             f"trial = {PACKAGE}.evaluation.trial:main",
             f"train_policy = {PACKAGE}.training.train:main",
             f"evaluate = {PACKAGE}.evaluation.evaluate:main",

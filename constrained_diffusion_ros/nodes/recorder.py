@@ -12,7 +12,9 @@ Metadata: metadata.yaml's `custom_data` (also in the MCAP file's `rosbag2` metad
 Both values are JSON strings, as custom_data holds strings only.
 
 SIGINT or SIGTERM closes the bag with every message received so far; a bag directory that already
-exists is refused (rosbag2 bags are never appended to).
+exists is refused (rosbag2 bags are never appended to). metadata.yaml is written when the bag opens
+and what was received is handed to the operating system twice a second: if the recorder is killed
+(SIGKILL, power loss), `recover_bag DIR` indexes everything written up to then.
 
 Run: `recorder --ros-args -p output:=trials/run1 -p metadata_file:=trials/run1.json`.
 """
@@ -42,14 +44,13 @@ from rosbags.interfaces import (
     QosReliability,
     QosTime,
 )
-from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
+from rosbags.rosbag2 import Writer, WriterError
 from rosbags.typesys import Stores, get_typestore
 
+from constrained_diffusion_ros.evaluation import bags
 from msg_schemas import NAMESPACE, TOPICS, Endpoint, qos_profile
 from msg_schemas.parameters import Param, declare
 from msg_schemas.spin import answered_help
-
-BAG_VERSION = 9  # rosbag2 metadata version written by ROS 2 Jazzy
 
 
 def message_class(type_name: str) -> type:
@@ -94,9 +95,10 @@ class Recorder(Node):
         self.trial_metadata = self.read_metadata(warn_missing=False)
 
         self.typestore = get_typestore(Stores.ROS2_JAZZY)
-        self.writer: Writer | None = Writer(self.output, version=BAG_VERSION,
-                                            storage_plugin=StoragePlugin.MCAP)
-        self.writer.open()  # raises WriterError if the directory appeared meanwhile
+        initial = {} if self.trial_metadata is None else {
+            "trial_metadata": json.dumps(self.trial_metadata)}
+        # WriterError if the directory exists (bags are never appended to)
+        self.writer: Writer | None = bags.open_bag(self.output, initial)
         self.connections = {}  # topic -> rosbags Connection, added at its first message
         # Keyed by full name (namespace and remapping applied), as the bag stores them.
         self.subscriptions_by_topic = {}
@@ -109,6 +111,7 @@ class Recorder(Node):
         self.counts = dict.fromkeys(self.subscriptions_by_topic, 0)
         self.publisher_counts = dict.fromkeys(self.subscriptions_by_topic, 0)
         self.publisher_timer = self.create_timer(0.2, self.check_publishers)
+        self.flush_timer = self.create_timer(bags.FLUSH_PERIOD_S, self.flush)
         self.get_logger().info(f"recording {len(TOPICS)} topics to {self.output}")
 
     def read_metadata(self, warn_missing: bool = True) -> object | None:
@@ -134,6 +137,10 @@ class Recorder(Node):
             self.connections[topic] = connection
         self.writer.write(connection, self.get_clock().now().nanoseconds, data)
         self.counts[topic] += 1
+
+    def flush(self) -> None:
+        if self.writer is not None:
+            bags.flush(self.writer)
 
     def check_publishers(self) -> None:
         """Log each topic's matched publishers when the number changes: what is being recorded."""

@@ -4,18 +4,21 @@ from __future__ import annotations
 
 import json
 import signal
+import time
 from pathlib import Path
 
+import pytest
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PolygonInstanceStamped
 from nav_msgs.msg import OccupancyGrid
 from nav_msgs.msg import Path as PathMsg
 from ros_helpers import SEED, stamp_ns
-from rosbags.rosbag2 import Reader
+from rosbags.rosbag2 import Reader, ReaderError
 from rosbags.typesys import Stores, get_typestore
 from visualization_msgs.msg import MarkerArray
 
+from constrained_diffusion_ros.evaluation import bags
 from msg_schemas import TOPICS
 
 
@@ -109,3 +112,50 @@ def test_recorder_refuses_existing_bag(processes, tmp_path):
     assert recorder.wait(timeout=20) != 0
     text = log.read_text()
     assert "exists" in text and "Traceback" not in text
+
+
+def test_a_recorder_killed_mid_trial_keeps_what_it_had_a_second_before(ros, sim, processes,
+                                                                       tmp_path):
+    """SIGKILL while the sim steps: metadata.yaml was valid from the start, the bag does not
+    open until `recover_bag` indexes it, and then holds the observations the test had received
+    up to one second before the kill (the recorder subscribes to the same topic)."""
+    bag = tmp_path / "bag"
+    recorder, log = processes.start("recorder_killed", "recorder", output=bag)
+    pusher = TOPICS["pusher"].resolved()
+    assert ros.spin_until(lambda: f"{pusher}: 1 publisher(s) matched" in log.read_text()
+                          and sim.setpoint_pub.get_subscription_count() >= 2), log.read_text()
+    information = yaml.safe_load((bag / "metadata.yaml").read_text())
+    assert information["rosbag2_bagfile_information"]["relative_file_paths"] == ["bag.mcap"]
+    assert "recover_bag" in information["rosbag2_bagfile_information"]["custom_data"]["recorder"]
+
+    assert sim.reset(SEED).success
+    received_at: dict[int, float] = {}  # observation stamp -> when the test had it
+    start = time.monotonic()
+    while time.monotonic() - start < 4.0:
+        before = sim.stamps()
+        sim.send(150.0 + 50.0 * ((time.monotonic() - start) % 2.0), 300.0)
+        for stamp in sim.wait_new_stamps(before, 1):
+            received_at[stamp] = time.monotonic()
+    recorder.send_signal(signal.SIGKILL)
+    killed = time.monotonic()
+    assert recorder.wait(timeout=10) == -signal.SIGKILL
+
+    with pytest.raises(ReaderError):
+        _bag_counts(bag)
+    assert bags.main([str(bag)]) == 0
+    counts, messages, _ = _bag_counts(bag)
+    recorded = [stamp_ns(m.header.stamp) for m in messages[pusher]]
+    recorded = set(recorded[len(recorded) - recorded[::-1].index(0):])  # since the reset
+    due = [stamp for stamp, at in received_at.items() if at <= killed - 1.0]
+    assert len(due) >= 20, len(due)  # the sim stepped for three seconds before that
+    kept = len(recorded & set(due))
+    print(f"recovered {kept} of the {len(due)} observations received up to 1 s before the kill; "
+          f"{len(recorded)} of {len(received_at)} in all")
+    assert kept >= 0.95 * len(due), (kept, len(due))
+    information = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert information["message_count"] == sum(counts.values())
+    assert json.loads(information["custom_data"]["message_counts"]) == counts
+    assert "recovered" in information["custom_data"]["recorder"]
+    assert (bag / "bag.mcap.unindexed").is_file()
+    assert bags.main([str(bag)]) == 0  # complete now: left as it is
+    assert _bag_counts(bag)[0] == counts

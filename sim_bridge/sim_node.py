@@ -42,7 +42,7 @@ from msg_schemas.conversions import (
     stamp_of_step,
 )
 from msg_schemas.parameters import Param, declare
-from msg_schemas.spin import spin_node
+from msg_schemas.spin import one_line, spin_node
 from sim_bridge.physics import PushTSim
 from sim_bridge.scene import CONTROL_HZ, COORD_LIMITS
 
@@ -56,7 +56,7 @@ REPUBLISH_PERIOD_S = 0.5
 def setpoint_fault(msg: PointStamped) -> str | None:
     """Why a setpoint cannot be executed, or None; checked where it arrives, before stepping."""
     if msg.header.frame_id not in ("", FRAME_ID):
-        return f"frame_id {msg.header.frame_id!r} is not {FRAME_ID!r}"
+        return f"frame_id {one_line(repr(msg.header.frame_id), 80)} is not {FRAME_ID!r}"
     x, y = msg.point.x, msg.point.y
     if not (math.isfinite(x) and math.isfinite(y)):
         return f"setpoint ({x}, {y}) is not finite"

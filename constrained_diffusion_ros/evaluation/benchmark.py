@@ -14,6 +14,7 @@ import time
 
 import torch
 
+from constrained_diffusion_ros.cli import ArgumentParser, positive_int, run_command
 from constrained_diffusion_ros.evaluation.rollout import rollout
 from constrained_diffusion_ros.paths import default_model_dir
 from constrained_diffusion_ros.planning.config import ConstraintConfig
@@ -23,33 +24,25 @@ from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="benchmark_policy", description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser = ArgumentParser("benchmark_policy", __doc__.split("\n\n")[0])
     parser.add_argument("--model", default=str(default_model_dir()), help="policy directory")
     parser.add_argument("--first-seed", type=int, default=100000)
-    parser.add_argument("--episodes", type=int, default=50)
-    parser.add_argument("--steps", type=int, default=200, help="action steps per episode")
+    parser.add_argument("--episodes", type=positive_int, default=50)
+    parser.add_argument("--steps", type=positive_int, default=200,
+                        help="action steps per episode")
     parser.add_argument("--sampler", choices=["ddpm", "ddim"], default="ddpm")
-    parser.add_argument("--denoising-steps", type=int, default=None,
+    parser.add_argument("--denoising-steps", type=positive_int, default=None,
                         help="inference steps (default: all 100 for DDPM)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the sampling noise")
     parser.add_argument("--json", help="also write the figures to this JSON file")
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    if args.episodes < 1 or args.steps < 1:
-        print("benchmark_policy: --episodes and --steps must be positive", file=sys.stderr)
-        return 2
-    try:
-        policy = load_policy(args.model)
-        unconstrained = ConstraintConfig("none", sampler=args.sampler,
-                                         denoising_steps=args.denoising_steps)
-        planner = ConstrainedPlanner(policy, unconstrained, PUSHT_ROBOT)
-    except ValueError as error:
-        print(f"benchmark_policy: {error}", file=sys.stderr)
-        return 2
+def run(args: argparse.Namespace) -> int:
+    policy = load_policy(args.model)
+    unconstrained = ConstraintConfig("none", sampler=args.sampler,
+                                     denoising_steps=args.denoising_steps)
+    planner = ConstrainedPlanner(policy, unconstrained, PUSHT_ROBOT)
     generator = torch.Generator().manual_seed(args.seed)
     seeds = list(range(args.first_seed, args.first_seed + args.episodes))
     started = time.monotonic()
@@ -69,6 +62,10 @@ def main(argv: list[str] | None = None) -> int:
         with open(args.json, "w") as handle:
             json.dump(figures, handle, indent=2)
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_command(run, build_parser().parse_args(argv), "benchmark_policy")
 
 
 if __name__ == "__main__":

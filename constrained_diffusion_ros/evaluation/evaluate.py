@@ -17,6 +17,7 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from constrained_diffusion_ros.cli import ArgumentParser, positive_int, run_command
 from constrained_diffusion_ros.evaluation import report
 from constrained_diffusion_ros.evaluation.configurations import load_evaluated
 from constrained_diffusion_ros.evaluation.runner import CellResult, evaluate_configurations
@@ -24,22 +25,26 @@ from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.policy.weights import load_policy
 
+DEFAULT_FIGURE = ("center_0.2", "r_g10_p_safe")
+
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="evaluate", description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser = ArgumentParser("evaluate", __doc__.split("\n\n")[0])
     parser.add_argument("--model", default=str(default_model_dir()), help="policy directory")
     parser.add_argument("--scenarios", nargs="+", default=["all"],
                         help="scenario names from config/scenarios.yaml, 'paper' or 'all'")
     parser.add_argument("--configs", nargs="+", default=["all"],
                         help="configuration names from config/configurations.yaml, 'paper' "
                              "or 'all'")
-    parser.add_argument("--episodes", type=int, default=25, help="seeds from --first-seed on")
+    parser.add_argument("--episodes", type=positive_int, default=25,
+                        help="seeds from --first-seed on")
     parser.add_argument("--first-seed", type=int, default=100000)
-    parser.add_argument("--steps", type=int, default=200, help="action steps per episode")
+    parser.add_argument("--steps", type=positive_int, default=200,
+                        help="action steps per episode")
     parser.add_argument("--output", default="docs/evaluation", help="report directory")
-    parser.add_argument("--figure", nargs=2, default=["center_0.2", "r_g10_p_safe"],
-                        metavar=("SCENARIO", "CONFIG"), help="cell drawn in frames.png")
+    parser.add_argument("--figure", nargs=2, default=None, metavar=("SCENARIO", "CONFIG"),
+                        help="cell drawn in frames.png (must be one this run evaluates); "
+                             f"default {' '.join(DEFAULT_FIGURE)} when evaluated")
     parser.add_argument("--reuse", action="store_true",
                         help="keep the cells already in OUTPUT/results.json and run only the "
                              "missing ones (after adding a configuration or a scenario, say)")
@@ -71,12 +76,27 @@ def reusable_cells(path: Path) -> dict[tuple[str, str], CellResult]:
                          f"move it away or leave out --reuse") from None
 
 
+def figure_cell(args: argparse.Namespace, evaluated: set[tuple[str, str]]) -> tuple | None:
+    """The (scenario, configuration) drawn in frames.png: the one asked for, which must be run
+    here, or the default one when it is."""
+    if args.figure is None:
+        return DEFAULT_FIGURE if DEFAULT_FIGURE in evaluated else None
+    if tuple(args.figure) not in evaluated:
+        raise ValueError(f"--figure {' '.join(args.figure)}: not a cell this run evaluates "
+                         f"(scenario and configuration must both be selected, and the "
+                         f"configuration must run on that scenario)")
+    return tuple(args.figure)
+
+
 def run(args: argparse.Namespace) -> int:
-    if args.episodes < 1 or args.steps < 1:
-        raise ValueError("--episodes and --steps must be positive")
     directory = Path(args.config_dir)
+    if not directory.is_dir():
+        raise ValueError(f"--config-dir {directory}: no such directory")
     scenarios = select(load_scenarios(directory / "scenarios.yaml"), args.scenarios, "scenarios")
     configs = select(load_evaluated(directory), args.configs, "configurations")
+    chosen_of = {c.name: [s for s in scenarios if s.paper or c.scenarios == "all"]
+                 for c in configs}
+    drawn = figure_cell(args, {(s.name, c) for c, chosen in chosen_of.items() for s in chosen})
     policy = load_policy(args.model)
     seeds = list(range(args.first_seed, args.first_seed + args.episodes))
     output = Path(args.output)
@@ -90,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
     cells, started, figure, reused = [], time.monotonic(), None, 0
     pending: dict[tuple, list] = {}  # sampler key -> [(configuration, its scenarios)]
     for config in configs:
-        chosen = [s for s in scenarios if s.paper or config.scenarios == "all"]
+        chosen = chosen_of[config.name]
         kept = [previous[key] for s in chosen if (key := (s.name, config.name)) in previous]
         cells, reused = cells + kept, reused + len(kept)
         missing = [s for s in chosen if (s.name, config.name) not in previous]
@@ -105,10 +125,10 @@ def run(args: argparse.Namespace) -> int:
         tqdm.write(f"{', '.join(c.name for c, _ in group)}: {len(results)} cells x "
                    f"{len(seeds)} episodes, batch of {len(log.seeds)}, in "
                    f"{time.monotonic() - t0:.0f} s")
-        if tuple(args.figure) in first_rows:
-            scenario = next(s for s in scenarios if s.name == args.figure[0])
-            config = next(c for c, _ in group if c.name == args.figure[1])
-            figure = (log, first_rows[tuple(args.figure)], scenario, config)
+        if drawn in first_rows:
+            scenario = next(s for s in scenarios if s.name == drawn[0])
+            config = next(c for c, _ in group if c.name == drawn[1])
+            figure = (log, first_rows[drawn], scenario, config)
     wall = time.monotonic() - started
     order = {(s.name, c.name): (i, j) for i, c in enumerate(configs)
              for j, s in enumerate(scenarios)}
@@ -136,12 +156,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        return run(args)
-    except ValueError as error:
-        print(f"evaluate: {error}", file=sys.stderr)
-        return 2
+    return run_command(run, build_parser().parse_args(argv), "evaluate")
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from constrained_diffusion_ros.cli import ArgumentParser, positive_int, run_command
 from constrained_diffusion_ros.evaluation.runner import (
     DEFAULT_SEEDS,
     evaluate_configurations,
@@ -43,8 +44,7 @@ def handover_jumps(commanded: np.ndarray, executed_chunk: np.ndarray) -> tuple[f
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="latency", description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser = ArgumentParser("latency", __doc__.split("\n\n")[0])
     parser.add_argument("--model", default=str(default_model_dir()), help="policy directory")
     parser.add_argument("--configs", nargs="+", default=["ddim10_r_g10_p_safe", "r_g10_p_safe"],
                         help="configuration names from config/configurations.yaml")
@@ -52,17 +52,19 @@ def build_parser() -> argparse.ArgumentParser:
                         help="scenario names from config/scenarios.yaml")
     parser.add_argument("--delays", nargs="+", type=int, default=[0, 1, 2, 4],
                         help="inference delays, control steps")
-    parser.add_argument("--episodes", type=int, default=len(DEFAULT_SEEDS),
+    parser.add_argument("--episodes", type=positive_int, default=len(DEFAULT_SEEDS),
                         help="seeds from 100000 on")
-    parser.add_argument("--steps", type=int, default=200, help="action steps per episode")
+    parser.add_argument("--steps", type=positive_int, default=200,
+                        help="action steps per episode")
     parser.add_argument("--output", default="docs", help="where latency.md and .json go")
-    parser.add_argument("--threads", type=int, default=2, help="torch threads")
+    parser.add_argument("--threads", type=positive_int, default=2, help="torch threads")
     return parser
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.episodes < 1 or args.steps < 1 or min(args.delays) < 0:
-        raise ValueError("--episodes and --steps must be positive, --delays >= 0")
+    if min(args.delays) < 0:
+        raise ValueError("--delays must be >= 0")
+    torch.set_num_threads(args.threads)
     directory = config_dir()
     known_scenarios = load_scenarios(directory / "scenarios.yaml")
     known_configs = load_configurations(directory / "configurations.yaml")
@@ -136,14 +138,7 @@ def markdown(rows: list[dict], args: argparse.Namespace) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    torch.set_num_threads(max(1, args.threads))
-    try:
-        return run(args)
-    except (ValueError, OSError) as error:
-        print(f"latency: error: {error}", file=sys.stderr)
-        return 2
+    return run_command(run, build_parser().parse_args(argv), "latency")
 
 
 if __name__ == "__main__":

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from constrained_diffusion_ros.cli import ArgumentParser, positive_int, run_command
 from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_domain_id
 from constrained_diffusion_ros.evaluation.rollout import RolloutLog
 from constrained_diffusion_ros.evaluation.scenarios import Scenario, load_scenarios
@@ -27,13 +28,14 @@ from msg_schemas import NAMESPACE, SERVICES, TOPICS
 from msg_schemas.conversions import point_of, pose2d_of, step_of_stamp, zones_shown
 from sim_bridge import CONTROL_HZ
 
-# In lockstep the other nodes wait while the policy plans, so it may use both cores.
-POLICY_THREADS = 2
+# One torch thread for the policy node: a default trial took 55.6 s idle and 62.7 s beside one
+# busy process with 1 thread, 57.1 s and 148 s with 2 (this 2-core machine): the second thread
+# gains nothing idle and fights any other load.
+POLICY_THREADS = 1
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="trial", description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser = ArgumentParser("trial", __doc__.split("\n\n")[0])
     parser.add_argument("--scenario", default="center_0.2",
                         help="zones from config/scenarios.yaml ('none' for no zones)")
     parser.add_argument("--configuration", default="r_g10_p_safe",
@@ -42,7 +44,8 @@ def build_parser() -> argparse.ArgumentParser:
                         default=str(config_dir() / "configurations.yaml"),
                         help="YAML of constraint configurations the policy node reads")
     parser.add_argument("--seed", type=int, default=100000, help="PushT scene seed")
-    parser.add_argument("--steps", type=int, default=200, help="control (action) steps")
+    parser.add_argument("--steps", type=positive_int, default=200,
+                        help="control (action) steps")
     parser.add_argument("--model", default=str(default_model_dir()), help="policy directory")
     parser.add_argument("--output", default=None,
                         help="trial directory (default trials/<scenario>_<configuration>_<seed>);"
@@ -233,16 +236,15 @@ def make_figures(output: Path, scenario, args: argparse.Namespace, received: dic
     iio.imwrite(output / "trial.gif", np.stack(frames), duration=100, loop=0)
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    if args.steps < 1:
-        print("trial: --steps must be positive", file=sys.stderr)
-        return 2
+TRIAL_FAILED = 1  # the nodes failed or timed out: not a bad argument
+
+
+def run(args: argparse.Namespace) -> int:
     try:
         metadata = run_trial(args)
-    except (ValueError, RuntimeError) as error:
-        print(f"trial: {error}", file=sys.stderr)
-        return 1
+    except RuntimeError as error:
+        print(f"trial: failed: {error}", file=sys.stderr)
+        return TRIAL_FAILED
     except KeyboardInterrupt:
         print("trial: interrupted; processes stopped, bag closed", file=sys.stderr)
         return 130
@@ -254,6 +256,10 @@ def main(argv: list[str] | None = None) -> int:
           f"{results.get('r_body', 0):.0f}")
     print(f"wrote {output}/bag (rosbag2, MCAP), {output}/frames.png, {output}/trial.gif")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_command(run, build_parser().parse_args(argv), "trial")
 
 
 if __name__ == "__main__":

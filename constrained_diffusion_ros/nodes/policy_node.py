@@ -67,12 +67,13 @@ from msg_schemas.conversions import (
     zone_markers,
 )
 from msg_schemas.parameters import Param, declare
-from msg_schemas.spin import spin_node
+from msg_schemas.spin import one_line, spin_node
 from sim_bridge.scene import observation as pusht_observation
 
 MODES = ("lockstep", "realtime")
 ROBOT_FIELDS = ("pusher_radius", "kp", "kv", "control_hz", "physics_hz")  # and workspace
 ZONE_BATCH_MAX = 10_000  # zone messages taken in one callback at most
+PENDING_HALVES = 64  # observation halves (keypoints or pusher) kept waiting for their other half
 MARKER_NAMESPACE = "zones"  # zone markers: marker namespace <node namespace>/zones, id = zone id
 # Their rise since the last report sets the diagnostic level.
 HEALTH_COUNTERS = ("violations", "unsound_setpoints", "zones_refused", "held_steps")
@@ -125,6 +126,15 @@ PARAMETERS = (
     Param("robot.physics_hz", float(PUSHT_ROBOT.physics_hz), "PD integration rate the shield "
           "predicts the pusher with", read_only=True, low=0.1),
 )
+
+
+def keep_pending(pending: dict[float, np.ndarray], stamp: float, half: np.ndarray) -> None:
+    """Keep one half of an observation until its other half comes, the oldest dropped past
+    PENDING_HALVES: halves that never pair (a future stamp, a dead topic) cannot pile up."""
+    pending.pop(stamp, None)
+    pending[stamp] = half
+    while len(pending) > PENDING_HALVES:
+        del pending[next(iter(pending))]
 
 
 def plug_in_area(spec: str, parameters: str) -> RestrictedArea | None:
@@ -272,12 +282,12 @@ class PolicyNode(Node):
             self.get_logger().warning(f"keypoints need 9 points, got {len(msg.polygon.points)}")
             return
         stamp = stamp_seconds(msg.header.stamp)
-        self.keypoints[stamp] = polygon_of(msg.polygon)
+        keep_pending(self.keypoints, stamp, polygon_of(msg.polygon))
         self._maybe_act(stamp, msg.header.stamp)
 
     def _on_pusher(self, msg: PointStamped) -> None:
         stamp = stamp_seconds(msg.header.stamp)
-        self.pushers[stamp] = point_of(msg)
+        keep_pending(self.pushers, stamp, point_of(msg))
         self._maybe_act(stamp, msg.header.stamp)
 
     def _maybe_act(self, stamp: float, stamp_msg) -> None:
@@ -457,8 +467,8 @@ class PolicyNode(Node):
             if message.header.frame_id not in ("", FRAME_ID):
                 refused += 1
                 self.get_logger().warning(
-                    f"zone {zone_id} refused: frame {message.header.frame_id!r} is not "
-                    f"{FRAME_ID!r}")
+                    f"zone {zone_id} refused: frame "
+                    f"{one_line(repr(message.header.frame_id), 80)} is not {FRAME_ID!r}")
                 continue
             stamp = stamp_seconds(message.header.stamp) or None  # 0: unstamped, from arrival
             updates.append((zone_id, [(p.x, p.y) for p in message.polygon.polygon.points],
@@ -473,8 +483,9 @@ class PolicyNode(Node):
         """A keep-out mask: its restricted cells become zones ("keepout/<k>", exact polygons)
         in place of the previous mask's; they do not expire."""
         if msg.header.frame_id not in ("", FRAME_ID):
-            self.get_logger().warning(f"keep-out mask refused: frame {msg.header.frame_id!r} "
-                                      f"is not {FRAME_ID!r}")
+            self.get_logger().warning(f"keep-out mask refused: frame "
+                                      f"{one_line(repr(msg.header.frame_id), 80)} is not "
+                                      f"{FRAME_ID!r}")
             return
         info = msg.info
         try:
@@ -484,7 +495,7 @@ class PolicyNode(Node):
                 self.get_parameter("keepout_threshold").value, width=info.width,
                 height=info.height, workspace=self.robot.workspace)
         except ValueError as error:
-            self.get_logger().warning(f"keep-out mask refused: {error}")
+            self.get_logger().warning(f"keep-out mask refused: {one_line(error)}")
             return
         ids = [f"keepout/{k}" for k in range(len(polygons))]
         removed = [(old, []) for old in self.keepout_ids if old not in ids]
@@ -537,7 +548,8 @@ class PolicyNode(Node):
         counts["zones_refused"] += len(outcome.refused) + refused_frames
         counts["zones_stale"] += outcome.stale
         for zone_id, reason in outcome.refused:
-            self.get_logger().warning(f"zone {zone_id} refused, zones in force kept: {reason}")
+            self.get_logger().warning(f"zone {zone_id} refused, zones in force kept: "
+                                      f"{one_line(reason)}")
 
     def _zones_changed(self) -> None:
         """In realtime the held setpoint is checked now and a safe one published at once."""

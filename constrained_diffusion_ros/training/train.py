@@ -20,6 +20,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
+from constrained_diffusion_ros.cli import ArgumentParser, positive_int, run_command
 from constrained_diffusion_ros.policy.config import PolicyConfig
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.normalizer import MinMaxNormalizer
@@ -184,20 +185,19 @@ def train(args: argparse.Namespace) -> dict:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="train_policy", description=__doc__.split("\n\n")[0],
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser = ArgumentParser("train_policy", __doc__.split("\n\n")[0])
     parser.add_argument("--dataset", required=True, help="path to pusht_cchi_v7_replay.zarr")
     parser.add_argument("--output", default="models/pusht_lowdim",
                         help="directory for weights, config, loss curve and checkpoint")
-    parser.add_argument("--steps", type=int, default=20000, help="optimiser steps in total")
-    parser.add_argument("--batch-size", type=int, default=256)
+    parser.add_argument("--steps", type=positive_int, default=20000,
+                        help="optimiser steps in total")
+    parser.add_argument("--batch-size", type=positive_int, default=256)
     parser.add_argument("--lr", type=float, default=3e-4, help="peak learning rate (cosine)")
     parser.add_argument("--warmup", type=int, default=500, help="linear warm-up steps")
-    parser.add_argument("--down-dims", type=int, nargs="+", default=[64, 128, 256],
+    parser.add_argument("--down-dims", type=positive_int, nargs="+", default=[64, 128, 256],
                         help="U-Net channel widths per level")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--checkpoint-every", type=int, default=1000)
+    parser.add_argument("--checkpoint-every", type=positive_int, default=1000)
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoint")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace a model already in --output (refused otherwise)")
@@ -205,27 +205,22 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    if args.steps <= 0 or args.batch_size <= 0 or args.checkpoint_every <= 0:
-        print("train_policy: --steps, --batch-size and --checkpoint-every must be positive",
-              file=sys.stderr)
-        return 2
+def run(args: argparse.Namespace) -> int:
     output = Path(args.output)
     if (output / WEIGHTS_FILE).exists() and not (args.resume or args.overwrite):
-        print(f"train_policy: {output} holds a model already; pass --resume to continue its "
-              f"checkpoint, --overwrite to replace it, or another --output", file=sys.stderr)
-        return 2
+        raise ValueError(f"{output} holds a model already; pass --resume to continue its "
+                         f"checkpoint, --overwrite to replace it, or another --output")
     try:
         train(args)
-    except ValueError as error:
-        print(f"train_policy: {error}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
-        print("train_policy: interrupted; rerun with --resume to continue from the last checkpoint",
-              file=sys.stderr)
+        print("train_policy: interrupted; rerun with --resume to continue from the last "
+              "checkpoint", file=sys.stderr)
         return 130
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_command(run, build_parser().parse_args(argv), "train_policy")
 
 
 if __name__ == "__main__":

@@ -22,6 +22,7 @@ from ros_helpers import Ros, stamp_step, step_stamp
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
+from constrained_diffusion_ros.nodes.policy_node import PENDING_HALVES, keep_pending
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from msg_schemas import FRAME_ID, SERVICES, TOPICS
 from sim_bridge import AGENT_RADIUS
@@ -355,3 +356,12 @@ def test_zones_that_leave_no_free_space_hold_the_pusher_and_report_an_error(
     setpoint, report = answer(503)
     assert report.level == DiagnosticStatus.OK, report.message  # space again: sound setpoints
     assert not PUSHT_ROBOT.outside(setpoint)
+
+
+def test_observation_halves_that_never_pair_cannot_pile_up() -> None:
+    """Keypoints with future stamps (or a pusher topic gone quiet) keep at most PENDING_HALVES
+    waiting; the newest stay."""
+    pending: dict[float, np.ndarray] = {}
+    for k in range(1000):
+        keep_pending(pending, 1e9 + k, np.zeros(2))
+    assert len(pending) == PENDING_HALVES and min(pending) == 1e9 + 1000 - PENDING_HALVES

@@ -80,5 +80,5 @@ def test_a_non_finite_loss_stops_training_with_a_clear_error(
                        "8", "--down-dims", *map(str, tiny_dims), "--steps", "5",
                        "--quiet"]) == 2
     error = capsys.readouterr().err.strip()
-    assert error.startswith("train_policy: non-finite loss") and "\n" not in error
+    assert error.startswith("train_policy: error: non-finite loss") and "\n" not in error
     assert not (out / "model.safetensors").exists()

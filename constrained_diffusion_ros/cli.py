@@ -1,0 +1,50 @@
+"""What every command of the package does with a bad file or argument: one line on stderr naming
+it, exit code 2, and the traceback only when asked for with --debug."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+from typing import NoReturn
+
+from msg_schemas.spin import one_line
+
+USAGE_ERROR = 2  # argparse's exit code for a bad argument; ours for any bad input
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse with the package's conventions: defaults shown in --help, a --debug flag, and a
+    bad argument reported in one line (argparse prints the whole usage first)."""
+
+    def __init__(self, prog: str, description: str) -> None:
+        super().__init__(prog=prog, description=description,
+                         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        self.add_argument("--debug", action="store_true",
+                          help="show the traceback of an error instead of one line")
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(USAGE_ERROR, f"{self.prog}: error: {one_line(message)} (see --help)\n")
+
+
+def positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text} is not a positive integer")
+    return value
+
+
+def run_command(run: Callable[[argparse.Namespace], int], args: argparse.Namespace,
+                prog: str) -> int:
+    """`run(args)`, with any error (a bad file, a bad value, a full disk) reported in one line
+    and exit code 2. Errors the package does not expect say so, so that they get reported."""
+    try:
+        return run(args)
+    except Exception as error:
+        if args.debug:
+            raise
+        known = isinstance(error, (ValueError, OSError))
+        print(f"{prog}: error: " + (one_line(error) if known else
+              f"unexpected {type(error).__name__}: {one_line(error)} (--debug shows where)"),
+              file=sys.stderr)
+        return USAGE_ERROR

@@ -1,0 +1,131 @@
+"""Every bad file and argument a command can be given: exit code 2, one line on stderr naming the
+fault, no traceback; --debug shows the traceback instead."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from constrained_diffusion_ros.evaluation import bags, benchmark, evaluate, latency, trial
+from constrained_diffusion_ros.paths import config_dir
+from constrained_diffusion_ros.policy.weights import save_policy
+from constrained_diffusion_ros.training import train
+from msg_schemas.spin import LINE_LIMIT, one_line
+
+COMMANDS: dict[str, Callable[[list[str]], int]] = {
+    "evaluate": evaluate.main, "train_policy": train.main, "latency": latency.main,
+    "benchmark_policy": benchmark.main, "trial": trial.main, "recover_bag": bags.main}
+
+
+@pytest.fixture
+def files(tmp_path: Path, make_tiny_policy, dataset_path: Path) -> dict[str, Path]:
+    """The paths the cases below refer to as {name}, each broken in its own way."""
+    model = save_policy(make_tiny_policy(0), tmp_path / "model")
+    paths = {"tmp": tmp_path, "model": model, "dataset": dataset_path}
+
+    def config_copy(name: str, file: str, text: str) -> None:
+        paths[name] = shutil.copytree(config_dir(), tmp_path / name)
+        (paths[name] / file).write_text(text)
+
+    config_copy("yaml_syntax", "configurations.yaml", "a: [\n")
+    config_copy("top_list", "configurations.yaml", "- a\n")
+    config_copy("push_abc", "configurations.yaml", "r: {push: abc}\n")
+    config_copy("python_tag", "configurations.yaml",
+                "x: !!python/object/apply:os.system ['echo hi']\n")
+    config_copy("bad_scenarios", "scenarios.yaml", "center: {zones: [[1, 2]]}\n")
+    reused = tmp_path / "reused"
+    reused.mkdir()
+    (reused / "results.json").write_text("[{\"scenario\": ")
+    paths["reused"] = reused
+    for name, change in {"horizon": {"horizon": 15}, "action_steps": {"n_action_steps": 20},
+                         "huge": {"down_dims": [4096, 8192, 16384]},
+                         "other_shapes": {"down_dims": [512, 1024, 2048]}}.items():
+        paths[name] = shutil.copytree(model, tmp_path / name)
+        config = json.loads((paths[name] / "config.json").read_text())
+        config["policy"].update(change)
+        (paths[name] / "config.json").write_text(json.dumps(config))
+    paths["truncated"] = shutil.copytree(model, tmp_path / "truncated")
+    weights = paths["truncated"] / "model.safetensors"
+    weights.write_bytes(weights.read_bytes()[:1000])
+    resumed = shutil.copytree(model, tmp_path / "resumed")
+    (resumed / "checkpoint").mkdir()
+    (resumed / "checkpoint" / "state.json").write_text("{damaged")
+    paths["resumed"] = resumed
+    paths["not_a_bag"] = tmp_path / "not_a_bag"
+    paths["not_a_bag"].mkdir()
+    (paths["not_a_bag"] / "metadata.yaml").write_text("rosbag2_bagfile_information: [\n")
+    paths["existing"] = tmp_path / "existing"
+    paths["existing"].mkdir()
+    return paths
+
+
+CASES = [  # command, arguments ({name}: a path from `files`), words the one line must hold
+    ("evaluate", "--config-dir {tmp}/nowhere", "no such directory"),
+    ("evaluate", "--config-dir {yaml_syntax}", "line 2"),
+    ("evaluate", "--config-dir {top_list}", "expected a mapping"),
+    ("evaluate", "--config-dir {push_abc}", "push must be a finite number"),
+    ("evaluate", "--config-dir {python_tag}", "could not determine a constructor"),
+    ("evaluate", "--config-dir {bad_scenarios}", "scenarios.yaml"),
+    ("evaluate", "--model {model} --configs none --scenarios center_0.2 --output /proc/report",
+     "/proc/report"),
+    ("evaluate", "--model {model} --configs none --scenarios center_0.2 --reuse "
+     "--output {reused}", "results.json"),
+    ("evaluate", "--model {model} --configs none --scenarios center_0.2 --figure a b",
+     "--figure a b"),
+    ("evaluate", "--episodes 0", "not a positive integer"),
+    ("evaluate", "--steps abc", "--steps"),
+    ("evaluate", "--model {horizon}", "horizon"),
+    ("benchmark_policy", "--model {action_steps}", "n_action_steps"),
+    ("benchmark_policy", "--model {huge}", "down_dims"),
+    ("benchmark_policy", "--model {other_shapes}", "model.safetensors"),
+    ("benchmark_policy", "--model {truncated}", "model.safetensors"),
+    ("benchmark_policy", "--model {tmp}/none", "none"),
+    ("train_policy", "--dataset {tmp}/none.zarr --output {tmp}/trained", "none.zarr"),
+    ("train_policy", "--dataset {dataset} --output {model}", "holds a model already"),
+    ("train_policy", "--dataset {dataset} --output {resumed} --resume --down-dims 16 32 64 "
+     "--quiet", "damaged"),
+    ("train_policy", "--dataset {dataset} --batch-size 0", "--batch-size"),
+    ("latency", "--delays -1", "--delays"),
+    ("latency", "--configs nothing", "nothing"),
+    ("trial", "--steps 0", "--steps"),
+    ("trial", "--scenario nowhere --output {tmp}/t1", "nowhere"),
+    ("trial", "--scenarios-file {yaml_syntax}/configurations.yaml --output {tmp}/t2", "line 2"),
+    ("trial", "--output {existing}", "exists"),
+    ("recover_bag", "{tmp}/nowhere", "no metadata.yaml"),
+    ("recover_bag", "{not_a_bag}", "metadata.yaml"),
+]
+
+
+def exit_code(command: str, argv: list[str]) -> int:
+    """What the console script would exit with (argparse exits by itself)."""
+    try:
+        return COMMANDS[command](argv)
+    except SystemExit as stop:
+        return stop.code
+
+
+@pytest.mark.parametrize(("command", "arguments", "words"), CASES,
+                         ids=[f"{c} {a}" for c, a, _ in CASES])
+def test_a_bad_file_or_argument_is_one_line_and_exit_code_2(
+        files: dict[str, Path], capsys, command: str, arguments: str, words: str) -> None:
+    assert exit_code(command, [word.format(**files) for word in arguments.split()]) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1, captured.err
+    assert lines[0].startswith(f"{command}: error: ") and words in lines[0], lines[0]
+    assert "Traceback" not in captured.err + captured.out
+
+
+def test_debug_shows_the_traceback_instead(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="no such directory"):
+        evaluate.main(["--config-dir", str(tmp_path / "nowhere"), "--debug"])
+
+
+def test_text_from_a_message_or_file_is_one_bounded_line() -> None:
+    line = one_line("frame\nid " + "x" * 1_000_000)
+    assert "\n" not in line and len(line) == LINE_LIMIT and line.endswith("...")
+    assert one_line("  short\ttext ") == "short text"

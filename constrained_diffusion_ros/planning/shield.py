@@ -103,7 +103,8 @@ class PusherShield:
         paths = (a[:, None] * p[:, None, None] + b[:, None] * v[:, None, None]
                  + c[:, None] * candidates[:, :, None])  # (N, F, H, 2)
         count, n_candidates, horizon, _ = paths.shape
-        clearance = area.signed_distance(paths.reshape(count, -1, 2).float())
+        paths = paths.reshape(count, -1, 2).float()
+        clearance = area.near(paths, self.margin).signed_distance(paths)
         return (clearance.reshape(count, n_candidates, horizon) >= self.margin).all(dim=-1)
 
     def _choose(self, area: RestrictedArea, p: Tensor, v: Tensor, start: Tensor,

@@ -161,6 +161,13 @@ class RestrictedArea(ABC):
         area is batch-aware (different zones per episode)."""
         return self
 
+    def near(self, points: Tensor, reach: float) -> RestrictedArea:
+        """An area that answers like this one for `points` (..., 2): the same `contains`, and
+        the same signed distance wherever it is below `reach` (it may be larger beyond). Exact
+        geometry drops the far edges, so checking many points near one pusher against many
+        zones costs what the nearby zones cost; by default the area itself."""
+        return self
+
     def _inflated(self, radius: float) -> RestrictedArea:
         return Inflated(self, radius)
 
@@ -194,6 +201,9 @@ class Inflated(RestrictedArea):
 
     def select_rows(self, rows: Tensor) -> RestrictedArea:
         return self.area.select_rows(rows).inflate(self.radius)
+
+    def near(self, points: Tensor, reach: float) -> RestrictedArea:
+        return Inflated(self.area.near(points, reach + self.radius), self.radius)
 
     def _inflated(self, radius: float) -> RestrictedArea:
         return self.area.inflate(self.radius + radius)
@@ -241,6 +251,9 @@ class AreaUnion(RestrictedArea):
 
     def select_rows(self, rows: Tensor) -> RestrictedArea:
         return AreaUnion([part.select_rows(rows) for part in self.parts])
+
+    def near(self, points: Tensor, reach: float) -> RestrictedArea:
+        return AreaUnion([part.near(points, reach) for part in self.parts])
 
     def _inflated(self, radius: float) -> RestrictedArea:
         return AreaUnion([part.inflate(radius) for part in self.parts])

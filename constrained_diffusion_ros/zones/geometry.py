@@ -149,6 +149,10 @@ class ZoneSet(RestrictedArea):
         rings = [np.asarray(r.coords) for p in self._parts for r in (p.exterior, *p.interiors)]
         tables = [_ring_edges(r) for r in rings]
         self._table = np.concatenate(tables) if tables else np.zeros((0, 6, 2))
+        # Each edge's ring, and each ring's bounds: what `near` keeps or drops.
+        self._ring_of_edge = np.repeat(np.arange(len(tables)), [len(t) for t in tables])
+        self._ring_bounds = np.array([[*r.min(axis=0), *r.max(axis=0)] for r in rings]
+                                     ).reshape(-1, 4)
         self._scale = max(1.0, float(np.abs(self._table[:, 0]).max(initial=0.0)))
         self._tensors: dict[tuple[torch.dtype, torch.device], tuple[Tensor, ...]] = {}
 
@@ -194,6 +198,28 @@ class ZoneSet(RestrictedArea):
         `quad_segs` segments per quarter circle. `inflate` gives the same, cached.
         """
         return self._like(shapely.get_parts(self._geometry.buffer(radius, quad_segs=quad_segs)))
+
+    def near(self, points: Tensor, reach: float) -> ZoneSet:
+        """The rings whose bounds come within `reach` of the points' bounding box: a point
+        lies inside a ring only within its bounds, and a ring beyond `reach` of every point
+        is farther than `reach` from each (the even-odd test and distances up to `reach` stay
+        exact). A view for queries only: derived areas come from the whole set."""
+        p = torch.as_tensor(points).reshape(-1, 2)
+        if len(p) == 0 or self.is_empty:
+            return self
+        low = p.amin(dim=0).double().numpy() - reach
+        high = p.amax(dim=0).double().numpy() + reach
+        bounds = self._ring_bounds
+        keep = ((bounds[:, 0] <= high[0]) & (bounds[:, 2] >= low[0])
+                & (bounds[:, 1] <= high[1]) & (bounds[:, 3] >= low[1]))
+        if keep.all():
+            return self
+        view = object.__new__(type(self))
+        view.__dict__.update(self.__dict__)
+        rows = keep[self._ring_of_edge]
+        view._table, view._ring_of_edge = self._table[rows], self._ring_of_edge[rows]
+        view._tensors, view._derived_areas = {}, {}
+        return view
 
     def _like(self, polygons: Iterable[shapely.Polygon]) -> ZoneSet:
         """A new set of these polygons, computing in this set's dtype."""

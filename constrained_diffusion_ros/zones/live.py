@@ -24,8 +24,10 @@ class _Zone:
     expires_at: float  # math.inf: never
 
 
-DEFAULT_MAX_ZONES = 64
-DEFAULT_MAX_VERTICES = 256
+# At these caps a batch of zone messages costs under one control period and a DDIM plan about
+# 0.4 s on 2 cores (scripts/bench_zones.py; README, "What zones cost").
+DEFAULT_MAX_ZONES = 32
+DEFAULT_MAX_VERTICES = 64
 
 
 @dataclass

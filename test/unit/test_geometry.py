@@ -187,3 +187,20 @@ def test_empty_set_restricts_nothing() -> None:
     assert torch.isinf(zones.signed_distance(points)).all()
     assert torch.equal(zones.project_out(points, 15.0), points)
     assert (zones.segment_clear_fraction(points, points.flip(0)) == 1).all()
+
+
+def test_near_answers_like_the_whole_set_for_points_close_by() -> None:
+    """The shield checks hundreds of path points near one pusher: `near` drops the far rings
+    and must not change an answer that matters (inside, or a distance below the reach)."""
+    squares = [rectangle(x, y, x + 20, y + 20) for x in range(0, 500, 60)
+               for y in range(0, 500, 60)]  # 81 zones, apart even when inflated
+    zones = ZoneSet.from_polygons(squares).inflate(15.0)
+    points = 100 + 80 * torch.rand(500, 2, generator=torch.Generator().manual_seed(0),
+                                   dtype=torch.float64)
+    view = zones.near(points, 5.0)
+    assert repr(view) != repr(zones)  # fewer edges
+    assert torch.equal(view.contains(points), zones.contains(points))
+    whole, local = zones.signed_distance(points), view.signed_distance(points)
+    close = whole < 5.0
+    assert close.any() and torch.equal(local[close], whole[close])
+    assert (local[~close] >= 5.0).all()

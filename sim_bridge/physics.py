@@ -47,10 +47,14 @@ SHAPE_FRICTION = 0.0
 
 
 def _to_float(value: object, name: str) -> np.ndarray:
+    """Numbers only: numpy would also turn True or "1" into 1.0."""
     try:
-        return np.array(value, dtype=np.float64)
+        raw = np.asarray(value)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{name} must be an array of numbers: {exc}") from None
+    if raw.dtype.kind not in "iuf":
+        raise ValueError(f"{name} must be an array of numbers, got {raw.dtype} values")
+    return raw.astype(np.float64)
 
 
 def _as_float_array(value: object, shape: tuple[int, ...], name: str) -> np.ndarray:
@@ -74,9 +78,13 @@ def _check_coords(coords: np.ndarray, name: str) -> None:
 
 
 def _check_states(states: object, n: int) -> np.ndarray:
-    """Validate (n, 5) states: finite, positions near the workspace."""
+    """Validate (n, 5) states: finite, pusher and block inside the walls."""
     arr = _as_float_array(states, (n, 5), "states")
-    _check_coords(arr[:, :4], "state positions (agent x, y, block x, y)")
+    lo, hi = WALLS[0][1][0], WALLS[2][0][0]  # the walls' inner lines, 5 and 506
+    positions = arr[:, :4]
+    if np.any((positions < lo) | (positions > hi)):
+        raise ValueError(f"state positions (agent x, y, block x, y) must lie inside the walls "
+                         f"[{lo:g}, {hi:g}], got {positions.tolist()}")
     return arr
 
 
@@ -137,8 +145,7 @@ class PushTSim:
     def set_state(self, state: object) -> None:
         """Teleport to [agent x, agent y, block x, block y, block angle], velocities zero."""
         arr = _as_float_array(state, (5,), "state")
-        _check_coords(arr[:4], "state positions (agent x, y, block x, y)")
-        self._set_state_unchecked(arr)
+        self._set_state_unchecked(_check_states(arr[None], 1)[0])
 
     def reset(self, seed: int) -> np.ndarray:
         """Start the seeded scene of the reference environment."""

@@ -58,6 +58,8 @@ def _assert_unchanged(sim: PushTSim, state: np.ndarray, vel: np.ndarray) -> None
         ([5000.0, 100.0], "within"),
         ([100.0, -1e9], "within"),
         (["a", "b"], "numbers"),
+        (["1", "2"], "numbers"),  # numpy would read them as 1.0 and 2.0
+        ([True, False], "numbers"),
     ],
 )
 def test_bad_action_raises_and_keeps_state(bad: object, match: str) -> None:
@@ -76,7 +78,9 @@ def test_bad_action_raises_and_keeps_state(bad: object, match: str) -> None:
         ([1.0, 2.0, 3.0, 4.0], "shape"),
         ([100.0, np.nan, 200.0, 200.0, 0.0], "finite"),
         ([100.0, 100.0, 200.0, 200.0, np.inf], "finite"),
-        ([100.0, 100.0, 1e5, 200.0, 0.0], "within"),
+        ([100.0, 100.0, 1e5, 200.0, 0.0], "inside the walls"),
+        ([100.0, 100.0, 508.0, 200.0, 0.0], "inside the walls"),  # beyond the right wall
+        ([2.0, 100.0, 200.0, 200.0, 0.0], "inside the walls"),
     ],
 )
 def test_bad_state_raises_and_keeps_state(bad: object, match: str) -> None:

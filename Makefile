@@ -30,6 +30,7 @@ bench: $(STAMP)
 	$(BIN)/python scripts/bench_sim.py
 	$(BIN)/benchmark_policy
 	$(BIN)/python scripts/bench_constraints.py --dataset $(DATASET)
+	$(BIN)/python scripts/bench_zones.py
 	$(BIN)/python scripts/bench_realtime.py  # idle, then with a load it starts itself
 
 evaluation: $(STAMP)

@@ -55,7 +55,7 @@ from sim_bridge import AGENT_RADIUS, CONTROL_HZ  # noqa: E402
 
 FIRST_SEED = 100000
 MAX_ATTEMPTS = 4  # scenes tried per trial asked for, at most
-FLOOD_IDS = 40  # ids cycled by the flood (the node's cap is 64)
+FLOOD_IDS = 30  # ids cycled by the flood (the node's cap is 32)
 TOLERANCE = 0.5  # px: a setpoint this close to the grown zone's boundary respects it
 
 

@@ -118,7 +118,8 @@ def run_trial(args: argparse.Namespace) -> dict:
     children = NodeProcesses(output, domain_id)
     deadline = time.monotonic() + args.timeout
     try:
-        children.start("recorder", output=output / "bag", metadata_file=metadata_file)
+        _, recorder_log = children.start("recorder", output=output / "bag",
+                                         metadata_file=metadata_file)
         children.start("sim_node", seed=args.seed, mode="lockstep", max_steps=args.steps,
                        autostart=False)
         plug_in, zone_topic = {}, None  # a plug-in check goes to the policy, zones to topics
@@ -154,7 +155,16 @@ def run_trial(args: argparse.Namespace) -> dict:
                     node.count_subscribers(zone_topic) >= 2
             return ready
 
+        def recorder_matched() -> bool:
+            """The recorder has matched the publishers the trial's figures come from (its log
+            says so). Seen in CI: a recorder that matched the policy 0.2 s before a short trial
+            ended kept none of the first five setpoints (their history came too late)."""
+            text = recorder_log.read_text()
+            return all(f"{TOPICS[topic].resolved()}: 1 publisher(s) matched" in text
+                       for topic in ("setpoint", "pusher", "block_pose"))
+
         spin_until(discovered, "the nodes to discover each other")
+        spin_until(recorder_matched, "the recorder to match the publishers")
         if scenario is not None:  # the policy echoes the zones in force as markers, one each
             expected = len(scenario.polygons_at(0))  # (a mask's pieces: at least one)
 

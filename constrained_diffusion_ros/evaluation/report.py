@@ -32,7 +32,7 @@ def markdown_table(cells: Sequence[CellResult], scenarios: Sequence[Scenario],
         row = [scenario.label]
         for config in configs:
             cell = by_key.get((scenario.name, config.name))
-            text = "" if cell is None else f"{cell.s:.3f} / {cell.r:.2f}"
+            text = "" if cell is None else f"{cell.s:.3f}{_interval(cell.s_ci)} / {cell.r:.2f}"
             quoted = paper.get(scenario.name, {}).get(config.name)
             if quoted:
                 text += f" (paper {quoted[0]:.3g} / {quoted[1]:.3g})"
@@ -42,8 +42,9 @@ def markdown_table(cells: Sequence[CellResult], scenarios: Sequence[Scenario],
 
 
 def details_table(cells: Sequence[CellResult]) -> str:
-    columns = ["scenario", "configuration", "s", "final_score", "success_rate", "r", "r_body",
-               "r_body_outside_starts", "path_crossings", "starts_inside", "ms_per_chunk"]
+    columns = ["scenario", "configuration", "s", "s_ci", "final_score", "success_rate",
+               "success_ci", "r", "r_ci", "r_body", "r_body_outside_starts", "path_crossings",
+               "starts_inside", "ms_per_chunk"]
     lines = ["| " + " | ".join(columns) + " |", "|" + " --- |" * len(columns)]
     for cell in cells:
         values = cell.to_dict()
@@ -54,7 +55,14 @@ def details_table(cells: Sequence[CellResult]) -> str:
 def _format(value: object) -> str:
     if value is None:
         return "-"
+    if isinstance(value, (tuple, list)):
+        return _interval(value).strip()
     return f"{value:.3f}" if isinstance(value, float) else str(value)
+
+
+def _interval(ci: Sequence[float] | None) -> str:
+    """' [low, high]' of a 95% interval; nothing for cells reported before intervals were."""
+    return "" if ci is None else f" [{ci[0]:.3f}, {ci[1]:.3f}]"
 
 
 def batch_times(cells: Sequence[CellResult]) -> str:
@@ -73,10 +81,22 @@ def batch_times(cells: Sequence[CellResult]) -> str:
 def write_tables(cells: Sequence[CellResult], output: Path) -> None:
     rows = [c.to_dict() for c in cells]
     (output / "results.json").write_text(json.dumps(rows, indent=2) + "\n")
+    flat = [_flat(row) for row in rows]  # an interval as two columns, <name>_low and _high
     with (output / "results.csv").open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer = csv.DictWriter(handle, fieldnames=list(dict.fromkeys(k for r in flat for k in r)))
         writer.writeheader()
-        writer.writerows(rows)
+        writer.writerows(flat)
+
+
+def _flat(row: dict) -> dict:
+    out = {}
+    for key, value in row.items():
+        if key.endswith("_ci"):
+            low, high = value if value is not None else (None, None)
+            out[f"{key}_low"], out[f"{key}_high"] = low, high
+        else:
+            out[key] = value
+    return out
 
 
 def plot_s_against_r(cells: Sequence[CellResult], configs: Sequence[EvaluatedConfiguration],
@@ -90,11 +110,21 @@ def plot_s_against_r(cells: Sequence[CellResult], configs: Sequence[EvaluatedCon
     markers = "os^vD<>ph*xP"
     for index, config in enumerate(configs):
         mine = [c for c in cells if c.configuration == config.name]
-        ax.scatter([c.r for c in mine], [c.s for c in mine], label=config.label,
-                   marker=markers[index % len(markers)], alpha=0.8)
+        points = ax.scatter([c.r for c in mine], [c.s for c in mine], label=config.label,
+                            marker=markers[index % len(markers)], alpha=0.8)
+        with_ci = [c for c in mine if c.s_ci is not None and c.r_ci is not None]
+        if with_ci:  # 95% intervals: bootstrap over episodes
+            ax.errorbar([c.r for c in with_ci], [c.s for c in with_ci],
+                        xerr=[[c.r - c.r_ci[0] for c in with_ci],
+                              [c.r_ci[1] - c.r for c in with_ci]],
+                        yerr=[[c.s - c.s_ci[0] for c in with_ci],
+                              [c.s_ci[1] - c.s for c in with_ci]],
+                        fmt="none", ecolor=points.get_facecolor()[0], alpha=0.4,
+                        linewidth=0.8)
     ax.set_xscale("symlog", linthresh=1.0)
     ax.set(xlabel="r: executed steps commanded inside a zone (mean per episode)",
-           ylabel="s: mean best score", title="Score against violations, every cell")
+           ylabel="s: mean best score",
+           title="Score against violations, every cell (bars: 95% intervals)")
     ax.grid(alpha=0.3)
     # Beside the axes: most cells with r = 0 sit at the left edge, where a legend would hide them.
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)

@@ -11,6 +11,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
+from constrained_diffusion_ros.evaluation.intervals import bootstrap_mean, wilson
 from constrained_diffusion_ros.evaluation.rollout import RolloutLog, rollout
 from constrained_diffusion_ros.evaluation.scenarios import Scenario
 from constrained_diffusion_ros.planning.config import ConstraintConfig
@@ -41,6 +42,11 @@ class CellResult:
     ms_per_call: float  # wall time of one batched planning call
     batch: int  # episodes per batched call in the steady state
     batch_wall_s: float | None = None  # wall time of the whole batched run the cell came from
+    # 95% intervals (intervals.py): bootstrap over episodes for s and r, Wilson for success;
+    # None in reports written before they were computed.
+    s_ci: tuple[float, float] | None = None
+    r_ci: tuple[float, float] | None = None
+    success_ci: tuple[float, float] | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -70,6 +76,7 @@ def cell_metrics(log: RolloutLog, rows: np.ndarray, scenario: Scenario) -> dict[
     start = torch.from_numpy(pusher[:, 0])
     started_inside = (zones[0].signed_distance(start) < PUSHT_ROBOT.pusher_radius).numpy()
     outside_starts = body[~started_inside].sum(axis=1)
+    successes = log.success[rows]
     return {
         "s": float(log.best_score[rows].mean()),
         "final_score": float(log.final_score[rows].mean()),
@@ -80,6 +87,9 @@ def cell_metrics(log: RolloutLog, rows: np.ndarray, scenario: Scenario) -> dict[
         "starts_inside": int(started_inside.sum()),
         "r_body_outside_starts": (float(outside_starts.mean())
                                   if len(outside_starts) else None),
+        "s_ci": bootstrap_mean(log.best_score[rows]),
+        "r_ci": bootstrap_mean(inside.sum(axis=1)),
+        "success_ci": wilson(int(successes.sum()), len(successes)),
     }
 
 

@@ -140,8 +140,13 @@ def test_a_short_evaluation_runs_end_to_end(tmp_path: Path, tiny_policy: Diffusi
     # ... where the unconstrained policy does command setpoints inside (half the workspace).
     assert sum(c["r"] for c in cells if c["configuration"] == "none") > 0
     assert all(0.0 <= c["s"] <= 1.0 for c in cells)
+    # Each cell carries its 95% intervals: around its means, zero-wide where r = 0 throughout.
+    assert all(c["s_ci"][0] <= c["s"] <= c["s_ci"][1] and c["r_ci"][0] <= c["r"] <= c["r_ci"][1]
+               and c["success_ci"][0] <= c["success_rate"] <= c["success_ci"][1] for c in cells)
+    assert all(c["r_ci"] == [0.0, 0.0] for c in cells if c["configuration"] == "projection")
     with (output / "results.csv").open() as handle:
-        assert len(list(csv.DictReader(handle))) == 4
+        rows = list(csv.DictReader(handle))
+    assert len(rows) == 4 and all(float(r["s_ci_low"]) <= float(r["s"]) for r in rows)
     table = (output / "table.md").read_text()
     assert "0.5 left" in table and "concave L" in table and "Projection" in table
     assert "0.5 left" in capsys.readouterr().out

@@ -44,9 +44,9 @@ class CellResult:
     batch_wall_s: float | None = None  # wall time of the whole batched run the cell came from
     # 95% intervals (intervals.py): bootstrap over episodes for s and r, Wilson for success;
     # None in reports written before they were computed.
-    s_ci: tuple[float, float] | None = None
-    r_ci: tuple[float, float] | None = None
-    success_ci: tuple[float, float] | None = None
+    s_ci: list[float] | None = None
+    r_ci: list[float] | None = None
+    success_ci: list[float] | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -57,7 +57,7 @@ def _zones_per_step(scenario: Scenario, n_steps: int) -> list:
     return [scenario.zones_at(t) for t in range(n_steps)]
 
 
-def cell_metrics(log: RolloutLog, rows: np.ndarray, scenario: Scenario) -> dict[str, float]:
+def cell_metrics(log: RolloutLog, rows: np.ndarray, scenario: Scenario) -> dict[str, object]:
     """s, r, r_body and path crossings of one scenario's episodes in a batched log."""
     commanded, pusher = log.commanded[rows], log.pusher[rows]
     n_steps = commanded.shape[1]
@@ -87,9 +87,10 @@ def cell_metrics(log: RolloutLog, rows: np.ndarray, scenario: Scenario) -> dict[
         "starts_inside": int(started_inside.sum()),
         "r_body_outside_starts": (float(outside_starts.mean())
                                   if len(outside_starts) else None),
-        "s_ci": bootstrap_mean(log.best_score[rows]),
-        "r_ci": bootstrap_mean(inside.sum(axis=1)),
-        "success_ci": wilson(int(successes.sum()), len(successes)),
+        # [low, high] lists, as they read back from JSON
+        "s_ci": list(bootstrap_mean(log.best_score[rows])),
+        "r_ci": list(bootstrap_mean(inside.sum(axis=1))),
+        "success_ci": list(wilson(int(successes.sum()), len(successes))),
     }
 
 

@@ -8,7 +8,7 @@ import sys
 from collections.abc import Callable
 from typing import NoReturn
 
-from msg_schemas.spin import one_line
+from msg_schemas.text import one_line
 
 USAGE_ERROR = 2  # argparse's exit code for a bad argument; ours for any bad input
 

@@ -16,15 +16,6 @@ from rclpy.node import Node
 
 from msg_schemas.parameters import Param, usage
 
-LINE_LIMIT = 400  # characters of a message-supplied text in a log or error line
-
-
-def one_line(text: object, limit: int = LINE_LIMIT) -> str:
-    """Text fit for one log line: newlines folded, cut at `limit` characters (a 1 MB frame_id
-    from a bad publisher is not logged whole on every message)."""
-    line = " ".join(str(text).split())
-    return line if len(line) <= limit else line[:limit - 3] + "..."
-
 
 def answered_help(args: list[str] | None, name: str, summary: str,
                   parameters: Sequence[Param]) -> bool:

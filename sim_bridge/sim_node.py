@@ -42,7 +42,8 @@ from msg_schemas.conversions import (
     stamp_of_step,
 )
 from msg_schemas.parameters import Param, declare
-from msg_schemas.spin import one_line, spin_node
+from msg_schemas.spin import spin_node
+from msg_schemas.text import one_line
 from sim_bridge.physics import PushTSim
 from sim_bridge.scene import CONTROL_HZ, COORD_LIMITS
 

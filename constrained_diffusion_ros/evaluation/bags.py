@@ -40,10 +40,14 @@ def read_messages(bag: str | Path) -> dict[str, list]:
     """Every message of a bag, deserialised, in recording order, per topic."""
     typestore = get_typestore(Stores.ROS2_JAZZY)
     messages: dict[str, list] = defaultdict(list)
-    with Reader(Path(bag)) as reader:
-        for connection, _timestamp, raw in reader.messages():
-            messages[connection.topic].append(
-                typestore.deserialize_cdr(raw, connection.msgtype))
+    try:
+        with Reader(Path(bag)) as reader:
+            for connection, _timestamp, raw in reader.messages():
+                messages[connection.topic].append(
+                    typestore.deserialize_cdr(raw, connection.msgtype))
+    except ReaderError as error:
+        raise ValueError(f"{bag}: not a closed bag ({error}); if its recorder died, run "
+                         f"`recover_bag {bag}`") from None
     return dict(messages)
 
 
@@ -180,7 +184,7 @@ def _complete_messages(stream):
 def main(argv: list[str] | None = None) -> int:
     parser = ArgumentParser(
         "recover_bag",
-        "Index a rosbag2 MCAP bag whose recorder was killed (SIGKILL, power loss): "
+        "Index a rosbag2 MCAP bag whose recorder was killed (SIGKILL, a crash): "
                     "every message written to disk before the kill (the recorder writes twice a "
                     "second) is kept, the bag gets its index and metadata.yaml, and the "
                     "unindexed file stays beside it as <name>.mcap.unindexed. A complete bag is "

@@ -76,20 +76,20 @@ def cell_metrics(log: RolloutLog, rows: np.ndarray, scenario: Scenario) -> dict[
     start = torch.from_numpy(pusher[:, 0])
     started_inside = (zones[0].signed_distance(start) < PUSHT_ROBOT.pusher_radius).numpy()
     outside_starts = body[~started_inside].sum(axis=1)
-    successes = log.success[rows]
+    best, successes, per_episode_r = log.best_score[rows], log.success[rows], inside.sum(axis=1)
     return {
-        "s": float(log.best_score[rows].mean()),
+        "s": float(best.mean()),
         "final_score": float(log.final_score[rows].mean()),
-        "success_rate": float(log.success[rows].mean()),
-        "r": float(inside.sum(axis=1).mean()),
+        "success_rate": float(successes.mean()),
+        "r": float(per_episode_r.mean()),
         "r_body": float(body.sum(axis=1).mean()),
         "path_crossings": float(crossing.sum(axis=1).mean()),
         "starts_inside": int(started_inside.sum()),
         "r_body_outside_starts": (float(outside_starts.mean())
                                   if len(outside_starts) else None),
         # [low, high] lists, as they read back from JSON
-        "s_ci": list(bootstrap_mean(log.best_score[rows])),
-        "r_ci": list(bootstrap_mean(inside.sum(axis=1))),
+        "s_ci": list(bootstrap_mean(best)),
+        "r_ci": list(bootstrap_mean(per_episode_r)),
         "success_ci": list(wilson(int(successes.sum()), len(successes))),
     }
 

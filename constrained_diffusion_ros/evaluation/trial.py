@@ -233,7 +233,7 @@ def make_figures(output: Path, scenario, args: argparse.Namespace, received: dic
 
     try:
         log = trial_log(read_trial(output / "bag"), args.seed, args.steps)
-    except RuntimeError as error:
+    except (RuntimeError, ValueError) as error:  # steps missing, or a bag not closed
         print(f"trial: warning: the bag is incomplete ({error}); figures drawn from the "
               f"messages received live", file=sys.stderr)
         log = trial_log(received, args.seed, args.steps)

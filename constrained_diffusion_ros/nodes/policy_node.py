@@ -17,14 +17,12 @@ zones in force stay in force. Counters of both are in the node's diagnostics (`/
 from __future__ import annotations
 
 import gc
-import math
 import sys
 import threading
 import time
 from collections import OrderedDict
 
 import numpy as np
-import shapely
 import torch
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -48,6 +46,7 @@ from constrained_diffusion_ros.planning.robot import RobotModel
 from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones.area import RestrictedArea
+from constrained_diffusion_ros.zones.geometry import leaves_no_room
 from constrained_diffusion_ros.zones.grid import DEFAULT_THRESHOLD, grid_polygons
 from constrained_diffusion_ros.zones.live import (
     DEFAULT_MAX_VERTICES,
@@ -67,7 +66,8 @@ from msg_schemas.conversions import (
     zone_markers,
 )
 from msg_schemas.parameters import Param, declare
-from msg_schemas.spin import one_line, spin_node
+from msg_schemas.spin import spin_node
+from msg_schemas.text import one_line
 from sim_bridge.scene import observation as pusht_observation
 
 MODES = ("lockstep", "realtime")
@@ -562,16 +562,10 @@ class PolicyNode(Node):
         self.controller.zones_changed(lambda safe: self._hold(safe, send_now=True))
 
     def _no_free_space(self) -> bool:
-        """Whether the zones, grown by the pusher's radius, cover the whole workspace: then
-        no setpoint is safe, and the pusher is held where it is until space returns. Grown
-        by r, an area A of perimeter P covers at most A + P r + pi r^2: below the workspace's
-        area there is space left for sure, and nothing is grown (the zone callback is on the
-        way to the safe setpoint)."""
-        union, radius = self.zones.snapshot().geometry, self.robot.pusher_radius
-        workspace = shapely.box(*self.robot.workspace)
-        if union.area + union.length * radius + math.pi * radius**2 < workspace.area:
-            return False
-        return bool(workspace.difference(union.buffer(radius)).is_empty)
+        """No setpoint is safe (the grown zones cover the workspace): the pusher is held where
+        it is until space returns."""
+        return leaves_no_room(self.zones.snapshot().geometry, self.robot.workspace,
+                              self.robot.pusher_radius)
 
     def _expire_zones(self) -> None:
         if self.zones.expire(self._now()):

@@ -14,7 +14,7 @@ Both values are JSON strings, as custom_data holds strings only.
 SIGINT or SIGTERM closes the bag with every message received so far; a bag directory that already
 exists is refused (rosbag2 bags are never appended to). metadata.yaml is written when the bag opens
 and what was received is handed to the operating system twice a second: if the recorder is killed
-(SIGKILL, power loss), `recover_bag DIR` indexes everything written up to then.
+(SIGKILL, a crash), `recover_bag DIR` indexes everything written up to then.
 
 Run: `recorder --ros-args -p output:=trials/run1 -p metadata_file:=trials/run1.json`.
 """

@@ -26,6 +26,7 @@ from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.normalizer import MinMaxNormalizer
 from constrained_diffusion_ros.policy.weights import WEIGHTS_FILE, save_policy
 from constrained_diffusion_ros.training.dataset import WindowSampler, load_demonstrations
+from msg_schemas.text import one_line
 
 CHECKPOINT_DIR = "checkpoint"
 
@@ -134,7 +135,7 @@ def train(args: argparse.Namespace) -> dict:
         except (OSError, KeyError, TypeError, RuntimeError, SafetensorError,
                 json.JSONDecodeError) as error:
             raise ValueError(f"checkpoint in {checkpoint} is damaged ({type(error).__name__}: "
-                             f"{' '.join(str(error).split())[:200]}); remove it to start "
+                             f"{one_line(error, 200)}); remove it to start "
                              f"afresh") from None
         print(f"resumed from {checkpoint} at step {step}")
     n_params = sum(p.numel() for p in policy.unet.parameters())
@@ -207,6 +208,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     output = Path(args.output)
+    checkpoint = output / CHECKPOINT_DIR / "state.json"
+    if args.resume and (output / WEIGHTS_FILE).exists() and not checkpoint.exists():
+        raise ValueError(f"--resume: {output} holds a model but no checkpoint to continue "
+                         f"(the shipped model has none); choose another --output")
     if (output / WEIGHTS_FILE).exists() and not (args.resume or args.overwrite):
         raise ValueError(f"{output} holds a model already; pass --resume to continue its "
                          f"checkpoint, --overwrite to replace it, or another --output")

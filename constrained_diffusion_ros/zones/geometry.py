@@ -104,6 +104,18 @@ def clip_to_workspace(polygon: shapely.Geometry, workspace: Bounds,
     return check_enforceable(shapely.union_all(parts), f"{label} (inside the workspace)")
 
 
+def leaves_no_room(zones: shapely.Geometry, workspace: Bounds, radius: float) -> bool:
+    """Whether the zones grown by `radius` cover the whole workspace (no safe place for a pusher
+    of that radius). Grown by r, k pieces of area A and perimeter P cover at most
+    A + P r + k pi r^2: below the workspace's area there is room for sure, and nothing is
+    grown (the zone callback is on the way to the safe setpoint)."""
+    box = shapely.box(*workspace)
+    pieces = len(shapely.get_parts(zones))
+    if zones.area + zones.length * radius + pieces * math.pi * radius**2 < box.area:
+        return False
+    return bool(box.difference(zones.buffer(radius)).is_empty)
+
+
 def _cross(u: Tensor, v: Tensor) -> Tensor:
     return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
 
@@ -202,24 +214,18 @@ class ZoneSet(RestrictedArea):
     def near(self, points: Tensor, reach: float) -> ZoneSet:
         """The rings whose bounds come within `reach` of the points' bounding box: a point
         lies inside a ring only within its bounds, and a ring beyond `reach` of every point
-        is farther than `reach` from each (the even-odd test and distances up to `reach` stay
-        exact). A view for queries only: derived areas come from the whole set."""
-        p = torch.as_tensor(points).reshape(-1, 2)
+        is farther than `reach` from each, so `contains` and distances up to `reach` stay
+        exact. What moves points (projection, segments) and derived areas use the whole set."""
+        p = torch.as_tensor(points).detach().reshape(-1, 2).cpu()
         if len(p) == 0 or self.is_empty:
             return self
+        reach = max(float(reach), 0.0)
         low = p.amin(dim=0).double().numpy() - reach
         high = p.amax(dim=0).double().numpy() + reach
         bounds = self._ring_bounds
         keep = ((bounds[:, 0] <= high[0]) & (bounds[:, 2] >= low[0])
                 & (bounds[:, 1] <= high[1]) & (bounds[:, 3] >= low[1]))
-        if keep.all():
-            return self
-        view = object.__new__(type(self))
-        view.__dict__.update(self.__dict__)
-        rows = keep[self._ring_of_edge]
-        view._table, view._ring_of_edge = self._table[rows], self._ring_of_edge[rows]
-        view._tensors, view._derived_areas = {}, {}
-        return view
+        return self if keep.all() else _NearbyRings(self, keep[self._ring_of_edge])
 
     def _like(self, polygons: Iterable[shapely.Polygon]) -> ZoneSet:
         """A new set of these polygons, computing in this set's dtype."""
@@ -243,7 +249,10 @@ class ZoneSet(RestrictedArea):
 
     def signed_distance(self, points: Tensor) -> Tensor:
         p, dtype = self._prepare(points)
-        return self._signed(p).to(dtype)
+        distance = self._signed(p)
+        # Inside stays negative in the caller's dtype too (float32 would round -tiny to -0.0).
+        return torch.where(distance < 0, distance.to(dtype).clamp_max(-torch.finfo(dtype).tiny),
+                           distance.to(dtype))
 
     def outward_direction(self, points: Tensor) -> Tensor:
         """Unit vectors (..., 2) that leave the area by the nearest boundary.
@@ -437,6 +446,23 @@ class ZoneSet(RestrictedArea):
         gaps = torch.cat([p - walls[:2], walls[2:] - p], dim=-1)
         side = gaps.argmin(dim=-1, keepdim=True)
         return p.scatter(-1, side % 2, walls.expand_as(gaps).gather(-1, side))
+
+
+class _NearbyRings(ZoneSet):
+    """A query view of a ZoneSet that keeps only some rings' edges (see `ZoneSet.near`)."""
+
+    def __init__(self, whole: ZoneSet, rows: np.ndarray) -> None:
+        self.__dict__.update(whole.__dict__)
+        self._whole = whole
+        self._table, self._ring_of_edge = whole._table[rows], whole._ring_of_edge[rows]
+        self._tensors = {}
+        self._derived_areas = whole.__dict__.setdefault("_derived_areas", {})  # shared cache
+
+    def project_out(self, points: Tensor, margin: float = 0.0, passes: int = 2) -> Tensor:
+        return self._whole.project_out(points, margin, passes)
+
+    def segment_clear_fraction(self, starts: Tensor, ends: Tensor) -> Tensor:
+        return self._whole.segment_clear_fraction(starts, ends)
 
 
 def _frame(workspace: Bounds) -> shapely.Polygon:

@@ -22,6 +22,7 @@ class _Zone:
     polygon: shapely.Geometry  # a polygon, or several where a clip split it
     vertices: np.ndarray  # (V, 2) the outline in force, for viewers
     expires_at: float  # math.inf: never
+    capped: bool = True  # counts toward max_zones (a message's zone; not a mask's piece)
 
 
 # At these caps a batch of zone messages costs under one control period and a DDIM plan about
@@ -111,10 +112,12 @@ class LiveZones:
         vertices = np.asarray(shapely.get_parts(polygon)[0].exterior.coords)[:-1]
         with self._lock:
             previous = self._zones.get(zone_id)
-            if capped and previous is None and len(self._zones) >= self.max_zones:
+            in_force = sum(zone.capped for zone in self._zones.values())
+            if capped and (previous is None or not previous.capped) and \
+                    in_force >= self.max_zones:
                 raise ValueError(f"zone {zone_id!r}: {self.max_zones} zones in force already "
                                  f"(the cap); remove one first")
-            self._zones[zone_id] = _Zone(polygon, vertices, expires_at)
+            self._zones[zone_id] = _Zone(polygon, vertices, expires_at, capped)
             if previous is None or not previous.polygon.equals_exact(polygon, 0.0):
                 self._changed()  # a re-published, identical zone only refreshes its lifetime
         return True

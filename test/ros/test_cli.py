@@ -14,7 +14,7 @@ from constrained_diffusion_ros.evaluation import bags, benchmark, evaluate, late
 from constrained_diffusion_ros.paths import config_dir
 from constrained_diffusion_ros.policy.weights import save_policy
 from constrained_diffusion_ros.training import train
-from msg_schemas.spin import LINE_LIMIT, one_line
+from msg_schemas.text import LINE_LIMIT, one_line
 
 COMMANDS: dict[str, Callable[[list[str]], int]] = {
     "evaluate": evaluate.main, "train_policy": train.main, "latency": latency.main,
@@ -69,7 +69,7 @@ CASES = [  # command, arguments ({name}: a path from `files`), words the one lin
     ("evaluate", "--config-dir {top_list}", "expected a mapping"),
     ("evaluate", "--config-dir {push_abc}", "push must be a finite number"),
     ("evaluate", "--config-dir {python_tag}", "could not determine a constructor"),
-    ("evaluate", "--config-dir {bad_scenarios}", "scenarios.yaml"),
+    ("evaluate", "--config-dir {bad_scenarios}", "scenario 'center'"),
     ("evaluate", "--model {model} --configs none --scenarios center_0.2 --output /proc/report",
      "/proc/report"),
     ("evaluate", "--model {model} --configs none --scenarios center_0.2 --reuse "
@@ -78,14 +78,15 @@ CASES = [  # command, arguments ({name}: a path from `files`), words the one lin
      "--figure a b"),
     ("evaluate", "--episodes 0", "not a positive integer"),
     ("evaluate", "--steps abc", "--steps"),
-    ("evaluate", "--model {horizon}", "horizon"),
+    ("evaluate", "--model {horizon} --configs none --scenarios center_0.2", "horizon"),
     ("benchmark_policy", "--model {action_steps}", "n_action_steps"),
     ("benchmark_policy", "--model {huge}", "down_dims"),
-    ("benchmark_policy", "--model {other_shapes}", "model.safetensors"),
-    ("benchmark_policy", "--model {truncated}", "model.safetensors"),
+    ("benchmark_policy", "--model {other_shapes}", "do not match"),
+    ("benchmark_policy", "--model {truncated}", "cannot read"),
     ("benchmark_policy", "--model {tmp}/none", "none"),
     ("train_policy", "--dataset {tmp}/none.zarr --output {tmp}/trained", "none.zarr"),
     ("train_policy", "--dataset {dataset} --output {model}", "holds a model already"),
+    ("train_policy", "--dataset {dataset} --output {model} --resume", "no checkpoint"),
     ("train_policy", "--dataset {dataset} --output {resumed} --resume --down-dims 16 32 64 "
      "--quiet", "damaged"),
     ("train_policy", "--dataset {dataset} --batch-size 0", "--batch-size"),
@@ -96,7 +97,7 @@ CASES = [  # command, arguments ({name}: a path from `files`), words the one lin
     ("trial", "--scenarios-file {yaml_syntax}/configurations.yaml --output {tmp}/t2", "line 2"),
     ("trial", "--output {existing}", "exists"),
     ("recover_bag", "{tmp}/nowhere", "no metadata.yaml"),
-    ("recover_bag", "{not_a_bag}", "metadata.yaml"),
+    ("recover_bag", "{not_a_bag}", "not rosbag2 metadata"),
 ]
 
 

@@ -18,7 +18,7 @@ import shapely
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import Point32, PointStamped, PolygonInstanceStamped, PolygonStamped
 from nav_msgs.msg import Path as PathMsg
-from ros_helpers import Ros, stamp_step, step_stamp
+from ros_helpers import Ros, shown_zone_ids, stamp_step, step_stamp
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
@@ -340,8 +340,7 @@ def test_zones_that_leave_no_free_space_hold_the_pusher_and_report_an_error(
     zones.publish(everything)
 
     def shows_everything() -> bool:  # (the test node's earlier zones are replayed too)
-        return bool(markers) and any(m.id == EVERYTHING_ID and m.action == m.ADD
-                                     for m in markers[-1].markers)
+        return EVERYTHING_ID in (shown_zone_ids(markers) or [])
 
     assert ros.spin_until(shows_everything), processes.logs()
     # Steps of their own (from 500): no other node of the module answers these stamps.

@@ -119,8 +119,10 @@ def test_a_recorder_killed_mid_trial_keeps_what_it_had_a_second_before(ros, sim,
     """SIGKILL while the sim steps: metadata.yaml was valid from the start, the bag does not
     open until `recover_bag` indexes it, and then holds the observations the test had received
     up to one second before the kill (the recorder subscribes to the same topic)."""
-    bag = tmp_path / "bag"
-    recorder, log = processes.start("recorder_killed", "recorder", output=bag)
+    bag, metadata_file = tmp_path / "bag", tmp_path / "trial.json"
+    metadata_file.write_text(json.dumps({"scenario": "killed"}))
+    recorder, log = processes.start("recorder_killed", "recorder", output=bag,
+                                    metadata_file=metadata_file)
     pusher = TOPICS["pusher"].resolved()
     assert ros.spin_until(lambda: f"{pusher}: 1 publisher(s) matched" in log.read_text()
                           and sim.setpoint_pub.get_subscription_count() >= 2), log.read_text()
@@ -156,6 +158,8 @@ def test_a_recorder_killed_mid_trial_keeps_what_it_had_a_second_before(ros, sim,
     assert information["message_count"] == sum(counts.values())
     assert json.loads(information["custom_data"]["message_counts"]) == counts
     assert "recovered" in information["custom_data"]["recorder"]
-    assert (bag / "bag.mcap.unindexed").is_file()
+    assert json.loads(information["custom_data"]["trial_metadata"]) == {"scenario": "killed"}
+    # Less than rosbags' own 1 MiB chunk: what was kept came from the recorder's flushes.
+    assert (bag / "bag.mcap.unindexed").stat().st_size < 2**20
     assert bags.main([str(bag)]) == 0  # complete now: left as it is
     assert _bag_counts(bag)[0] == counts

@@ -10,6 +10,7 @@ import shapely
 import torch
 
 from constrained_diffusion_ros.zones import RestrictedArea, ZoneSet, rectangle
+from constrained_diffusion_ros.zones.geometry import leaves_no_room
 
 L_SHAPE = np.array([[100, 100], [300, 100], [300, 160], [160, 160], [160, 400], [100, 400]])
 
@@ -204,3 +205,18 @@ def test_near_answers_like_the_whole_set_for_points_close_by() -> None:
     close = whole < 5.0
     assert close.any() and torch.equal(local[close], whole[close])
     assert (local[~close] >= 5.0).all()
+    # What moves points answers for the whole set: no point lands in a dropped ring.
+    assert torch.equal(view.project_out(points, 5.0), zones.project_out(points, 5.0))
+
+
+def test_leaves_no_room_counts_every_piece_grown() -> None:
+    """Many small pieces grown by r cover more than one piece's bound (k pi r^2, not pi r^2):
+    625 cells of 2 px, 21 px apart, grown by 15 px cover the 512 px workspace; 16 px apart with
+    a 40 px gap in the middle of the grid they do not."""
+    cells = shapely.union_all([shapely.box(x, y, x + 2, y + 2) for x in range(0, 525, 21)
+                               for y in range(0, 525, 21)])
+    assert leaves_no_room(cells, (0.0, 0.0, 512.0, 512.0), 15.0)
+    gap = shapely.box(236, 236, 276, 276).buffer(15.0)
+    assert not leaves_no_room(cells.difference(gap), (0.0, 0.0, 512.0, 512.0), 15.0)
+    assert leaves_no_room(shapely.box(-10, -10, 600, 600), (0.0, 0.0, 512.0, 512.0), 0.0)
+    assert not leaves_no_room(shapely.box(0, 0, 100, 100), (0.0, 0.0, 512.0, 512.0), 15.0)

@@ -72,6 +72,9 @@ def test_caps_refuse_with_a_reason_and_keep_the_zones_in_force() -> None:
     outcome = live.apply([("keepout/0", hexagon), ("keepout/1", rectangle(8, 0, 9, 1))],
                          now=0.0, capped=False)
     assert outcome.refused == [] and live.ids == [2, 3, "keepout/0", "keepout/1"]
+    # ... nor counted toward them: with a mask in force, a message's zone still finds room.
+    outcome = live.apply([(2, []), (4, rectangle(10, 0, 11, 1))], now=0.0)
+    assert outcome.refused == [] and live.ids == [3, "keepout/0", "keepout/1", 4]
 
 
 def test_lifetime_counts_from_the_stamp_so_a_replayed_stale_zone_stays_gone() -> None:

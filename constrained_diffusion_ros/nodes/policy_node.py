@@ -17,6 +17,7 @@ zones in force stay in force. Counters of both are in the node's diagnostics (`/
 from __future__ import annotations
 
 import gc
+import pickle
 import sys
 import threading
 import time
@@ -99,8 +100,11 @@ PARAMETERS = (
           "starts; -1: from the measured planning time", read_only=True, low=-1),
     Param("prefix_soft", 4, "realtime: waypoints after the committed ones drawn toward the "
           "chunk in force; -1: no inpainting", read_only=True, low=-1),
-    Param("torch_threads", 1, "torch threads of this process (1 is best on 2 cores; about "
+    Param("torch_threads", 1, "torch threads of the planner (1 is best on 2 cores; about "
           "half the cores on bigger machines)", read_only=True, low=1, high=256),
+    Param("planning_process", True, "realtime: plan in a child process, so planning never "
+          "holds the interpreter lock that the clock and zone callbacks need; false: in a "
+          "thread (a restricted_area plug-in that cannot be pickled needs it)", read_only=True),
     Param("max_zones", DEFAULT_MAX_ZONES, "zones in force at most; more are refused",
           read_only=True, low=1),
     Param("max_vertices", DEFAULT_MAX_VERTICES, "vertices per zone at most", read_only=True,
@@ -151,6 +155,18 @@ def plug_in_area(spec: str, parameters: str) -> RestrictedArea | None:
     return load_area(spec, keywords)
 
 
+def _check_picklable(area: RestrictedArea | None, spec: str) -> None:
+    """The planning process gets the zones by pickle: a plug-in area that cannot be pickled is
+    refused at start, in one line, rather than failing every plan."""
+    if area is None:
+        return
+    try:
+        pickle.dumps(area)
+    except Exception as error:
+        raise ValueError(f"restricted_area {spec!r} cannot be sent to the planning process "
+                         f"({one_line(error)}); set planning_process:=false") from None
+
+
 class PolicyNode(Node):
     def __init__(self) -> None:
         super().__init__("policy_node", namespace=NAMESPACE)
@@ -171,6 +187,8 @@ class PolicyNode(Node):
                                plug_in_area(values["restricted_area"],
                                             values["restricted_area_parameters"]),
                                workspace=self.robot.workspace)
+        if self.mode == "realtime" and values["planning_process"]:
+            _check_picklable(self.zones.fixed, values["restricted_area"])
         self.zone_counts = {"zone_messages": 0, "zones_applied": 0, "zones_refused": 0,
                             "zones_stale": 0, "zone_batches": 0}
         self.noise_seed = values["noise_seed"]
@@ -208,7 +226,8 @@ class PolicyNode(Node):
             wake = self.create_guard_condition(self._on_plan_ready)
             self.controller = RealtimeController(
                 self.planner, self.zones, self.rate_hz, None if self.lead < 0 else self.lead,
-                self.soft, self.noise_seed, wake.trigger)
+                self.soft, self.noise_seed, wake.trigger,
+                threads if values["planning_process"] else None)
             self.clock = ControlClock(self.rate_hz, self._on_tick)
             if not self.clock.realtime:
                 self.get_logger().warning(

@@ -6,7 +6,7 @@ A chunk planned from the observation of step t puts its executed waypoint j (chu
 waypoints whose time has passed are skipped (as LeRobot's asynchronous action queue merges
 chunks). While a plan is being made, the waypoints that will execute before it arrives are
 already decided; the next chunk is denoised with them held fixed (`committed_prefix`), so the
-handover does not jump. The policy node runs this with a `BackgroundPlanner` thread and a
+handover does not jump. The policy node runs this with a `PlanningProcess` (workers.py) and a
 `ControlClock` thread; the latency evaluation runs it in lockstep with a chosen delay.
 """
 
@@ -25,8 +25,14 @@ import numpy as np
 import torch
 
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
+from constrained_diffusion_ros.planning.workers import (
+    BackgroundPlanner,
+    PlanJob,
+    PlanningProcess,
+    PlanResult,
+    plan_chunk,
+)
 from constrained_diffusion_ros.sampling.hooks import CommittedPrefix, prefix_weights
-from constrained_diffusion_ros.zones.area import RestrictedArea
 from constrained_diffusion_ros.zones.live import LiveZones
 
 
@@ -120,94 +126,6 @@ def committed_prefix(queue: ActionQueue, rows: np.ndarray, step: int, delay: int
     return CommittedPrefix(torch.from_numpy(known), torch.from_numpy(weights))
 
 
-@dataclass
-class PlanJob:
-    """One request to the background planner: everything it needs, copied when asked."""
-
-    generation: int
-    step: int  # the control step of the newest observation in `observations`
-    observations: torch.Tensor  # (1, n_obs_steps, obs_dim)
-    zones: RestrictedArea | None  # the zones in force when asked
-    zone_version: int
-    prefix: CommittedPrefix | None
-
-
-@dataclass
-class PlanResult:
-    job: PlanJob
-    chunk: np.ndarray  # (horizon, 2)
-    seconds: float
-
-
-class BackgroundPlanner:
-    """A worker thread that plans one chunk at a time, off the control thread.
-
-    `submit` replaces any job not yet started (only the newest request matters); a result is
-    offered to `on_result` with its job, whose generation the owner compares with its own to
-    drop plans that a zone or configuration change made stale. The worker draws from its own
-    random generator and runs at a lower CPU priority than the process's other threads, so the
-    control clock is never kept waiting by planning. Owns its thread like tf2_ros's listener:
-    `shutdown()` stops and joins it.
-    """
-
-    def __init__(self, plan: Callable[[PlanJob, torch.Generator], np.ndarray],
-                 on_result: Callable[[PlanResult], None], noise_seed: int = 0,
-                 niceness: int = 5, name: str = "background_planner") -> None:
-        self._plan, self._on_result, self._niceness = plan, on_result, niceness
-        self.generator = torch.Generator().manual_seed(noise_seed)
-        self._job: PlanJob | None = None
-        self._busy = False
-        self._stopping = False
-        self._wake = threading.Condition()
-        self.error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
-        self._thread.start()
-
-    @property
-    def busy(self) -> bool:
-        """A job is waiting or being planned."""
-        with self._wake:
-            return self._busy or self._job is not None
-
-    def submit(self, job: PlanJob) -> None:
-        with self._wake:
-            self._job = job
-            self._wake.notify()
-
-    def reseed(self, noise_seed: int) -> None:
-        """A new episode: the same noise as a fresh node (applied before the next job)."""
-        with self._wake:
-            self.generator.manual_seed(noise_seed)
-
-    def shutdown(self, timeout: float = 5.0) -> None:
-        with self._wake:
-            self._stopping = True
-            self._wake.notify()
-        self._thread.join(timeout)
-
-    def _run(self) -> None:
-        if self._niceness and hasattr(os, "setpriority"):
-            with contextlib.suppress(OSError):  # Linux: a thread is a process to setpriority
-                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), self._niceness)
-        while True:
-            with self._wake:
-                while self._job is None and not self._stopping:
-                    self._wake.wait()
-                if self._stopping:
-                    return
-                job, self._job, self._busy = self._job, None, True
-            try:
-                began = time.perf_counter()
-                chunk = self._plan(job, self.generator)
-                self._on_result(PlanResult(job, chunk, time.perf_counter() - began))
-            except Exception as error:  # reported by the owner; the worker keeps serving
-                self.error = error
-                logging.getLogger(__name__).exception("planning failed")
-            finally:
-                with self._wake:
-                    self._busy = False
-
-
 CLOCK_PRIORITY = 50  # SCHED_FIFO priority of the control clock where allowed (ros2_control's)
 LATENESS_WINDOW = 100  # ticks over which the clock's lateness is kept for diagnostics
 
@@ -295,7 +213,10 @@ class RealtimeController:
     def __init__(self, planner: ConstrainedPlanner, zones: LiveZones, rate_hz: float,
                  lead: int | None = None,
                  soft: int = 4, noise_seed: int = 0,
-                 wake: Callable[[], None] = lambda: None) -> None:
+                 wake: Callable[[], None] = lambda: None,
+                 process_threads: int | None = None) -> None:
+        """`process_threads`: plan in a child process with that many torch threads (what the
+        node does); None: in a thread of this process."""
         config = planner.policy_config
         self.planner, self.zones, self.rate_hz = planner, zones, rate_hz
         self.n_action_steps, self.first_executed = config.n_action_steps, config.first_executed
@@ -311,7 +232,9 @@ class RealtimeController:
         self.stats = ControllerStats()
         self._results: list[PlanResult] = []
         self._results_lock = threading.Lock()
-        self.worker = BackgroundPlanner(self._plan, self._on_result, noise_seed)
+        self.worker = (BackgroundPlanner(self._plan, self._on_result, noise_seed)
+                       if process_threads is None else
+                       PlanningProcess(planner, self._on_result, noise_seed, process_threads))
 
     # -- inputs ---------------------------------------------------------------------------
 
@@ -340,6 +263,8 @@ class RealtimeController:
         """Another configuration: plans in flight are dropped, a new one asked for; the chunk
         in force executes until it arrives."""
         self.planner = planner
+        if isinstance(self.worker, PlanningProcess):
+            self.worker.use(planner)
         self.generation += 1
         if self.step is not None:
             self._ask(prefix=False)
@@ -468,8 +393,7 @@ class RealtimeController:
                                    self.zones.version_at(self.step), committed))
 
     def _plan(self, job: PlanJob, generator: torch.Generator) -> np.ndarray:
-        chunk = self.planner.plan(job.observations, job.zones, None, generator, job.prefix)
-        return chunk[0, self.first_executed:].numpy().astype(float)
+        return plan_chunk(self.planner, job, generator)
 
     def _on_result(self, result: PlanResult) -> None:
         with self._results_lock:

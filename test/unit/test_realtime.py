@@ -3,6 +3,7 @@ plan, the background planner's thread, and the executor with an inference delay.
 
 from __future__ import annotations
 
+import os
 import threading
 
 import numpy as np
@@ -16,11 +17,15 @@ from constrained_diffusion_ros.planning.executor import ChunkExecutor
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.planning.realtime import (
     ActionQueue,
-    BackgroundPlanner,
     ControlClock,
-    PlanJob,
     RealtimeController,
     committed_prefix,
+)
+from constrained_diffusion_ros.planning.workers import (
+    BackgroundPlanner,
+    PlanJob,
+    PlanningProcess,
+    plan_chunk,
 )
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
@@ -118,6 +123,51 @@ def test_a_planning_error_is_kept_and_the_worker_keeps_serving() -> None:
         assert isinstance(worker.error, RuntimeError) and calls == [1, 2]
     finally:
         worker.shutdown()
+
+
+def test_the_planning_process_plans_what_the_thread_would_in_a_process_of_its_own(
+        tiny_policy: DiffusionPolicy) -> None:
+    zones = LiveZones()
+    zones.upsert(1, rectangle(150, 150, 250, 250), now=0.0)
+    job = PlanJob(1, 0, torch.full((1, 2, 20), 200.0), zones.snapshot(), 0, None)
+    planner = ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT)
+    other = ConstrainedPlanner(tiny_policy, ConstraintConfig("free", sampler="ddim",
+                                                             denoising_steps=3), PUSHT_ROBOT)
+    expected = [plan_chunk(p, job, torch.Generator().manual_seed(3)) for p in (planner, other)]
+    results, done = [], threading.Semaphore(0)
+    worker = PlanningProcess(planner, lambda r: (results.append(r), done.release()),
+                             noise_seed=3)
+    try:
+        assert worker.pid != os.getpid()
+        worker.submit(job)
+        assert worker.busy and done.acquire(timeout=60)
+        worker.reseed(3)  # a new episode: the same noise again
+        worker.use(other)
+        worker.submit(job)
+        assert done.acquire(timeout=60)
+        worker.submit(PlanJob(2, 0, torch.zeros(1, 5, 3), None, 0, None))  # a bad job
+        for _ in range(3000):
+            if worker.error is not None and not worker.busy:
+                break
+            threading.Event().wait(0.01)
+        assert isinstance(worker.error, RuntimeError) and str(worker.error)
+        worker.reseed(3)
+        worker.use(planner)
+        worker.submit(job)  # the error is reported and the child keeps serving
+        assert done.acquire(timeout=60)
+    finally:
+        worker.shutdown()
+    assert worker._process.returncode == 0
+    assert [r.job.generation for r in results] == [1, 1, 1]
+    for result, want in zip(results, [expected[0], expected[1], expected[0]], strict=True):
+        np.testing.assert_array_equal(result.chunk, want)
+
+
+def test_the_planning_process_exits_when_the_node_is_gone(tiny_policy: DiffusionPolicy) -> None:
+    worker = PlanningProcess(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT), lambda r: None)
+    worker._stopping = True  # as if the node were killed: its end closes, no stop sent
+    worker._connection.close()
+    assert worker._process.wait(timeout=60) == 0
 
 
 def observations_at(step: int, batch: int = 2) -> np.ndarray:
@@ -226,11 +276,12 @@ def test_the_controller_installs_a_late_plan_without_the_steps_that_passed(
         controller.shutdown()
 
 
+@pytest.mark.parametrize("process_threads", [None, 1], ids=["thread", "process"])
 def test_a_zone_arriving_mid_chunk_gets_a_safe_setpoint_before_the_next_tick(
-        tiny_policy: DiffusionPolicy) -> None:
+        tiny_policy: DiffusionPolicy, process_threads: int | None) -> None:
     zones = LiveZones()  # lead 1: no plan asked for the chunk running out, however slow plans
     controller = RealtimeController(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT), zones,
-                                    rate_hz=10.0, lead=1)
+                                    rate_hz=10.0, lead=1, process_threads=process_threads)
     try:
         controller.observe(0, observation_with_pusher(200, 200))
         controller.tick()

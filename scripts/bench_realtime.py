@@ -84,6 +84,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="skip running `trial` in the loaded condition")
     parser.add_argument("--log-dir", default=None, help="node logs (default: a temporary one)")
     parser.add_argument("--startup-timeout", type=float, default=90.0)
+    parser.add_argument("--planning-process", choices=["true", "false"], default="true",
+                        help="the policy node's planning_process parameter (false: a thread)")
     return parser
 
 
@@ -384,7 +386,8 @@ def run_condition(args: argparse.Namespace, loaded: bool) -> None:
                 children.start("sim_node", seed=FIRST_SEED, mode="realtime",
                                rate_hz=args.rate_hz, autostart=False)
                 children.start("policy_node", model=args.model, configuration=configuration,
-                               mode="realtime", rate_hz=args.rate_hz)
+                               mode="realtime", rate_hz=args.rate_hz,
+                               planning_process=args.planning_process == "true")
                 client.spin_until(client.discovered, args.startup_timeout,
                                   "the nodes to discover each other")
                 result = Condition()
@@ -395,6 +398,9 @@ def run_condition(args: argparse.Namespace, loaded: bool) -> None:
                     print(".", end="", flush=True)
                 print()
                 report(configuration, result, 1.0 / args.rate_hz)
+                print("    node: " + ", ".join(f"{key} {client.status.get(key, '?')}" for key in (
+                    "planning_ms", "plans", "plans_dropped", "held_steps", "ticks_missed",
+                    "tick_late_p99_ms", "clock_realtime")))
                 if index == 0 and args.flood_hz > 0:
                     flood(client, args)
             finally:

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import yaml
 
+from constrained_diffusion_ros.policy.schedulers import SPACINGS
+
 
 def _number(value: object) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool)
@@ -40,6 +42,8 @@ class ConstraintConfig:
     from_scratch: int = 0  # >0: no hooks; draw this many whole chunks, keep the first that fits
     sampler: str = "ddpm"
     denoising_steps: int | None = None
+    timestep_spacing: str = "leading"  # which training timesteps a shorter schedule visits
+    eta: float = 0.0  # DDIM: 0 deterministic given the first noise, 1 DDPM-like
 
     def __post_init__(self) -> None:
         for spec in fields(self):  # types as written in a YAML file: say which field is wrong
@@ -58,6 +62,11 @@ class ConstraintConfig:
             raise ValueError(f"configuration {self.name!r}: from_scratch replaces the hooks")
         if self.sampler not in ("ddpm", "ddim"):
             raise ValueError(f"configuration {self.name!r}: sampler must be ddpm or ddim")
+        if self.timestep_spacing not in SPACINGS:
+            raise ValueError(f"configuration {self.name!r}: timestep_spacing must be one of "
+                             f"{', '.join(SPACINGS)}")
+        if not 0.0 <= self.eta <= 1.0:
+            raise ValueError(f"configuration {self.name!r}: eta must be in [0, 1]")
 
     @property
     def constrains(self) -> bool:
@@ -68,7 +77,8 @@ class ConstraintConfig:
     @property
     def sampler_key(self) -> tuple:
         """Configurations with equal keys can share one batch of network calls."""
-        return (self.sampler, self.denoising_steps, self.from_scratch and self.name)
+        return (self.sampler, self.denoising_steps, self.timestep_spacing, self.eta,
+                self.from_scratch and self.name)
 
 
 def read_yaml(path: str | Path) -> object:

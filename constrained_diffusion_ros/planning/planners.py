@@ -72,7 +72,8 @@ class ConstrainedPlanner:
     def __init__(self, policy: DiffusionPolicy, config: ConstraintConfig,
                  robot: RobotModel) -> None:
         self.policy, self.config, self.robot = policy, config, robot
-        self.sampler = DenoisingSampler(policy, config.sampler, config.denoising_steps)
+        self.sampler = DenoisingSampler(policy, config.sampler, config.denoising_steps,
+                                       config.timestep_spacing, config.eta)
         self.shield = PusherShield(robot) if config.shield else None
 
     @property

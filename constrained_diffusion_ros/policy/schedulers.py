@@ -9,14 +9,24 @@ from diffusers import DDIMScheduler, DDPMScheduler
 from constrained_diffusion_ros.policy.config import PolicyConfig
 
 SchedulerKind = Literal["ddpm", "ddim"]
+TimestepSpacing = Literal["leading", "trailing", "linspace"]
+SPACINGS = ("leading", "trailing", "linspace")
 
 
-def make_scheduler(config: PolicyConfig, kind: SchedulerKind = "ddpm") -> DDPMScheduler:
+def make_scheduler(config: PolicyConfig, kind: SchedulerKind = "ddpm",
+                   timestep_spacing: TimestepSpacing = "leading") -> DDPMScheduler:
+    """`timestep_spacing` (diffusers'): which training timesteps a shorter schedule visits.
+    "leading" (10 of 100: 90, 80, .., 0) starts below the noisiest step, where the sample is
+    still assumed to hold some signal; "trailing" (99, 89, .., 9) starts at pure noise."""
+    if timestep_spacing not in SPACINGS:
+        raise ValueError(f"unknown timestep spacing {timestep_spacing!r}; choose one of "
+                         f"{', '.join(SPACINGS)}")
     common = {
         "num_train_timesteps": config.num_train_timesteps,
         "beta_schedule": config.beta_schedule,
         "clip_sample": config.clip_sample,
         "prediction_type": config.prediction_type,
+        "timestep_spacing": timestep_spacing,
     }
     if kind == "ddpm":
         return DDPMScheduler(variance_type="fixed_small", **common)

@@ -16,7 +16,11 @@ from diffusers import SchedulerMixin
 
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.normalizer import MinMaxNormalizer
-from constrained_diffusion_ros.policy.schedulers import SchedulerKind, make_scheduler
+from constrained_diffusion_ros.policy.schedulers import (
+    SchedulerKind,
+    TimestepSpacing,
+    make_scheduler,
+)
 
 
 @dataclass(frozen=True)
@@ -57,10 +61,14 @@ class DenoisingSampler:
     """Draws action chunks from a policy with DDPM (the reference) or DDIM (fewer steps)."""
 
     def __init__(self, policy: DiffusionPolicy, kind: SchedulerKind = "ddpm",
-                 num_inference_steps: int | None = None) -> None:
+                 num_inference_steps: int | None = None,
+                 timestep_spacing: TimestepSpacing = "leading", eta: float = 0.0) -> None:
+        """`eta` (DDIM only): 0 is deterministic given the first noise, 1 adds DDPM's noise
+        at every step."""
         self.policy = policy
         self.kind = kind
-        self.scheduler = make_scheduler(policy.config, kind)
+        self.scheduler = make_scheduler(policy.config, kind, timestep_spacing)
+        self.step_options = {"eta": eta} if kind == "ddim" else {}
         self.num_inference_steps = num_inference_steps or policy.config.num_train_timesteps
         if not 1 <= self.num_inference_steps <= policy.config.num_train_timesteps:
             raise ValueError(f"num_inference_steps must be in [1, "
@@ -78,7 +86,8 @@ class DenoisingSampler:
         timesteps = self.scheduler.timesteps
         for index, timestep in enumerate(timesteps):
             noise = self.policy.unet(sample, timestep, cond)
-            sample = self.scheduler.step(noise, timestep, sample, generator=generator).prev_sample
+            sample = self.scheduler.step(noise, timestep, sample, generator=generator,
+                                         **self.step_options).prev_sample
             if hooks:
                 last = index == len(timesteps) - 1
                 step = DenoisingStep(index, len(timesteps), int(timestep), generator, normalizer,

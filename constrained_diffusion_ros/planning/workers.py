@@ -23,7 +23,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from multiprocessing.connection import Connection
 from pathlib import Path
 
@@ -146,7 +146,7 @@ def serve(descriptor: int, threads: int, niceness: int) -> None:
     if niceness and hasattr(os, "nice"):
         with contextlib.suppress(OSError):
             os.nice(niceness)
-    policy, planner = None, None
+    policy, planner, zones = None, None, None
     generator = torch.Generator()
     while True:
         try:
@@ -163,8 +163,11 @@ def serve(descriptor: int, threads: int, niceness: int) -> None:
             generator.manual_seed(payload)
         elif kind == "job":
             began = time.perf_counter()
+            job, same_zones = payload
+            job = replace(job, zones=zones) if same_zones else job
+            zones = job.zones
             try:
-                reply = ("chunk", plan_chunk(planner, payload, generator))
+                reply = ("chunk", plan_chunk(planner, job, generator))
             except Exception as error:  # reported by the node; the child keeps serving
                 reply = ("error", f"{type(error).__name__}: {error}")
             _send(connection, (*reply, time.perf_counter() - began))
@@ -198,7 +201,8 @@ class PlanningProcess:
         self._connection = Connection(ours.detach())
         self._lock = threading.Lock()  # in flight, pending and the sending end
         self._in_flight: PlanJob | None = None
-        self._pending: tuple[PlanJob, bytes] | None = None
+        self._pending: PlanJob | None = None
+        self._sent_zones: RestrictedArea | None = None
         self.error: BaseException | None = None
         self._stopping = False
         with self._lock:  # the weights once (they wait for the child to start reading)
@@ -220,12 +224,11 @@ class PlanningProcess:
             return self._in_flight is not None or self._pending is not None
 
     def submit(self, job: PlanJob) -> None:
-        data = pickle.dumps(("job", job), protocol=pickle.HIGHEST_PROTOCOL)  # off the lock
         with self._lock:
             if self._in_flight is None:
-                self._start(job, data)
+                self._start(job)
             else:
-                self._pending = (job, data)
+                self._pending = job
 
     def use(self, planner: ConstrainedPlanner) -> None:
         """Plan with another configuration (of the same policy) from the next job on; a few
@@ -250,10 +253,13 @@ class PlanningProcess:
         self._connection.close()
         self._receiver.join(timeout)
 
-    def _start(self, job: PlanJob, data: bytes) -> None:
-        """Send a job; the caller holds the lock."""
+    def _start(self, job: PlanJob) -> None:
+        """Send a job, its zones only when they are not the ones sent last (the child keeps
+        those, and what it derived from them); the caller holds the lock."""
         self._in_flight = job
-        self._connection.send_bytes(data)
+        same = job.zones is not None and job.zones is self._sent_zones
+        self._sent_zones = job.zones
+        _send(self._connection, ("job", (replace(job, zones=None) if same else job, same)))
 
     def _receive(self) -> None:
         while True:
@@ -268,7 +274,7 @@ class PlanningProcess:
             with self._lock:
                 job, self._in_flight = self._in_flight, None
                 if self._pending is not None:
-                    self._start(*self._pending)
+                    self._start(self._pending)
                     self._pending = None
             if kind == "error":
                 self.error = RuntimeError(payload)

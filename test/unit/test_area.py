@@ -3,6 +3,8 @@ distance, works with every query, every derived area and every shipped configura
 
 from __future__ import annotations
 
+import pickle
+
 import numpy as np
 import pytest
 import torch
@@ -122,3 +124,16 @@ def test_the_shield_acts_on_a_users_area(tiny_policy: DiffusionPolicy) -> None:
     assert not np.array_equal(out, setpoint) and planner.shield.corrected == 1
     assert distance(out)[0] >= RADIUS  # held back where the body stays clear
     assert out[0, 0] == 256.0 and 60.0 < out[0, 1] <= observation[0, 19]  # on the way there
+
+
+def test_an_area_pickles_without_its_caches_and_answers_the_same() -> None:
+    """What the planning process receives: the zones, not what was derived from them."""
+    zones = ZoneSet.from_polygons([[[100, 100], [200, 100], [200, 200], [100, 200]]])
+    bounded = zones.inflate(15.0).bounded((0.0, 0.0, 512.0, 512.0))
+    points = torch.tensor([[150.0, 150.0], [90.0, 150.0], [300.0, 300.0], [-5.0, 10.0]])
+    expected = bounded.signed_distance(points)  # fills the caches
+    bare = len(pickle.dumps(ZoneSet.from_polygons([[[100, 100], [200, 100], [200, 200],
+                                                    [100, 200]]])))
+    assert len(pickle.dumps(zones)) == bare
+    copy = pickle.loads(pickle.dumps(bounded))
+    torch.testing.assert_close(copy.signed_distance(points), expected)

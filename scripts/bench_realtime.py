@@ -369,6 +369,15 @@ def report(name: str, result: Condition, nominal: float) -> None:
           f"{result.overlap_steps}")
 
 
+def cpu_times() -> np.ndarray:
+    """(steal, total) CPU time of the machine so far, in clock ticks (Linux; zeros elsewhere)."""
+    try:
+        fields = [int(v) for v in Path("/proc/stat").read_text().split("\n")[0].split()[1:]]
+    except (OSError, ValueError):
+        return np.zeros(2)
+    return np.array([fields[7] if len(fields) > 7 else 0, sum(fields[:8])])
+
+
 def run_condition(args: argparse.Namespace, loaded: bool) -> None:
     label = f"loaded ({args.load} busy process(es))" if loaded else "idle"
     print(f"\n== {label}, {os.cpu_count()} cores, {args.rate_hz:g} Hz ==", flush=True)
@@ -391,13 +400,17 @@ def run_condition(args: argparse.Namespace, loaded: bool) -> None:
                 client.spin_until(client.discovered, args.startup_timeout,
                                   "the nodes to discover each other")
                 result = Condition()
+                before = cpu_times()
                 attempt = 0  # scenes without room for a zone are skipped; the next seed is tried
                 while result.trials < args.trials and attempt < MAX_ATTEMPTS * args.trials:
                     run_trial(client, attempt, FIRST_SEED + attempt, args, result)
                     attempt += 1
                     print(".", end="", flush=True)
                 print()
+                steal, total = cpu_times() - before
                 report(configuration, result, 1.0 / args.rate_hz)
+                print(f"    CPU time taken by the hypervisor (steal) during the trials: "
+                      f"{100 * steal / max(total, 1):.1f}%")
                 print("    node: " + ", ".join(f"{key} {client.status.get(key, '?')}" for key in (
                     "planning_ms", "plans", "plans_dropped", "held_steps", "ticks_missed",
                     "tick_late_p99_ms", "clock_realtime")))

@@ -19,6 +19,8 @@ from constrained_diffusion_ros.evaluation.rollout import rollout
 from constrained_diffusion_ros.paths import default_model_dir
 from constrained_diffusion_ros.planning.config import ConstraintConfig
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
+from constrained_diffusion_ros.policy.device import DEVICES
+from constrained_diffusion_ros.policy.schedulers import SPACINGS
 from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 
@@ -33,15 +35,21 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--sampler", choices=["ddpm", "ddim"], default="ddpm")
     parser.add_argument("--denoising-steps", type=positive_int, default=None,
                         help="inference steps (default: all 100 for DDPM)")
+    parser.add_argument("--timestep-spacing", choices=SPACINGS, default="leading",
+                        help="which training timesteps a shorter schedule visits")
     parser.add_argument("--seed", type=int, default=0, help="seed of the sampling noise")
+    parser.add_argument("--device", default="cpu", help=f"where the network runs: {DEVICES}")
+    parser.add_argument("--threads", type=positive_int, default=2, help="torch threads")
     parser.add_argument("--json", help="also write the figures to this JSON file")
     return parser
 
 
 def run(args: argparse.Namespace) -> int:
-    policy = load_policy(args.model)
+    torch.set_num_threads(args.threads)
+    policy = load_policy(args.model, args.device)
     unconstrained = ConstraintConfig("none", sampler=args.sampler,
-                                     denoising_steps=args.denoising_steps)
+                                     denoising_steps=args.denoising_steps,
+                                     timestep_spacing=args.timestep_spacing)
     planner = ConstrainedPlanner(policy, unconstrained, PUSHT_ROBOT)
     generator = torch.Generator().manual_seed(args.seed)
     seeds = list(range(args.first_seed, args.first_seed + args.episodes))
@@ -52,6 +60,7 @@ def run(args: argparse.Namespace) -> int:
     figures = {
         "episodes": len(seeds), "seeds": f"{seeds[0]}..{seeds[-1]}", "action_steps": args.steps,
         "sampler": f"{args.sampler}-{planner.sampler.num_inference_steps}",
+        "timestep_spacing": args.timestep_spacing, "device": str(policy.device),
         "mean_best_score": float(log.best_score.mean()),
         "mean_final_score": float(log.final_score.mean()),
         "success_rate": float(log.success.mean()), "wall_time_s": round(wall, 1),

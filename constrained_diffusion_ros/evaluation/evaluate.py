@@ -23,6 +23,7 @@ from constrained_diffusion_ros.evaluation.configurations import load_evaluated
 from constrained_diffusion_ros.evaluation.runner import CellResult, evaluate_configurations
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
+from constrained_diffusion_ros.policy.device import DEVICES
 from constrained_diffusion_ros.policy.weights import load_policy
 
 DEFAULT_FIGURE = ("center_0.2", "r_g10_p_safe")
@@ -48,6 +49,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--reuse", action="store_true",
                         help="keep the cells already in OUTPUT/results.json and run only the "
                              "missing ones (after adding a configuration or a scenario, say)")
+    parser.add_argument("--device", default="cpu", help=f"where the network runs: {DEVICES}")
+    parser.add_argument("--threads", type=positive_int, default=2,
+                        help="torch threads (this machine's cores, if nothing else runs)")
     parser.add_argument("--config-dir", default=str(config_dir()),
                         help="directory with scenarios.yaml, configurations.yaml and "
                              "evaluation.yaml (the report's labels)")
@@ -65,15 +69,17 @@ def select(available: dict, wanted: list[str], kind: str) -> list:
     return [available[name] for name in wanted]
 
 
-def reusable_cells(path: Path) -> dict[tuple[str, str], CellResult]:
-    """The cells of an earlier report, by (scenario, configuration); ValueError in one line if
-    the file is not one."""
+def reusable_cells(path: Path, episodes: int) -> dict[tuple[str, str], CellResult]:
+    """The cells of an earlier report run on `episodes` episodes and with intervals, by
+    (scenario, configuration); ValueError in one line if the file is not a report."""
     try:
         rows = json.loads(path.read_text())
-        return {(r["scenario"], r["configuration"]): CellResult(**r) for r in rows}
+        cells = {(r["scenario"], r["configuration"]): CellResult(**r) for r in rows}
     except (OSError, ValueError, TypeError, KeyError) as error:
         raise ValueError(f"{path} is not a report to reuse ({type(error).__name__}: {error}); "
                          f"move it away or leave out --reuse") from None
+    return {key: cell for key, cell in cells.items()  # without intervals: run again
+            if cell.s_ci is not None and cell.episodes == episodes}
 
 
 def figure_cell(args: argparse.Namespace, evaluated: set[tuple[str, str]]) -> tuple | None:
@@ -97,7 +103,8 @@ def run(args: argparse.Namespace) -> int:
     chosen_of = {c.name: [s for s in scenarios if s.paper or c.scenarios == "all"]
                  for c in configs}
     drawn = figure_cell(args, {(s.name, c) for c, chosen in chosen_of.items() for s in chosen})
-    policy = load_policy(args.model)
+    torch.set_num_threads(args.threads)
+    policy = load_policy(args.model, args.device)
     seeds = list(range(args.first_seed, args.first_seed + args.episodes))
     output = Path(args.output)
     try:
@@ -106,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"cannot write the report to {output}: {error.strerror}") from None
     previous = {}
     if args.reuse and (output / "results.json").is_file():
-        previous = reusable_cells(output / "results.json")
+        previous = reusable_cells(output / "results.json", args.episodes)
     cells, started, figure, reused = [], time.monotonic(), None, 0
     pending: dict[tuple, list] = {}  # sampler key -> [(configuration, its scenarios)]
     for config in configs:

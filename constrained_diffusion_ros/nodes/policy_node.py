@@ -44,6 +44,7 @@ from constrained_diffusion_ros.planning.executor import ChunkExecutor
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.planning.realtime import ControlClock, RealtimeController
 from constrained_diffusion_ros.planning.robot import RobotModel
+from constrained_diffusion_ros.policy.device import DEVICES
 from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones.area import RestrictedArea
@@ -102,6 +103,8 @@ PARAMETERS = (
           "chunk in force; -1: no inpainting", read_only=True, low=-1),
     Param("torch_threads", 1, "torch threads of the planner (1 is best on 2 cores; about "
           "half the cores on bigger machines)", read_only=True, low=1, high=256),
+    Param("device", "cpu", f"where the network runs: {DEVICES} (the zones stay on the CPU)",
+          read_only=True),
     Param("planning_process", True, "realtime: plan in a child process, so planning never "
           "holds the interpreter lock that the clock and zone callbacks need; false: in a "
           "thread (a restricted_area plug-in that cannot be pickled needs it)", read_only=True),
@@ -181,7 +184,7 @@ class PolicyNode(Node):
             **{name: values[f"robot.{name}"] for name in ROBOT_FIELDS},
             workspace=tuple(values["robot.workspace"]),
             pusher_in_observation=PUSHT_ROBOT.pusher_in_observation)
-        self.policy = load_policy(values["model"])
+        self.policy = load_policy(values["model"], values["device"])
         self.configurations = load_configurations(values["configurations_file"])
         self.zones = LiveZones(values["max_zones"], values["max_vertices"],
                                plug_in_area(values["restricted_area"],

@@ -31,6 +31,11 @@ class DiffusionPolicy(nn.Module):
         self.action_normalizer = MinMaxNormalizer.from_dict(config.normalizer["action"])
         self.train_scheduler = make_scheduler(config, "ddpm")
 
+    @property
+    def device(self) -> torch.device:
+        """Where the network's weights are (the CPU unless moved)."""
+        return next(self.unet.parameters()).device
+
     def condition(self, obs_history: torch.Tensor) -> torch.Tensor:
         """(B, n_obs_steps, obs_dim) raw observations -> (B, global_cond_dim) network condition."""
         expected = (self.config.n_obs_steps, self.config.obs_dim)
@@ -44,8 +49,8 @@ class DiffusionPolicy(nn.Module):
         """The reference's training objective: MSE between true and predicted noise."""
         cond = self.condition(obs_history)
         clean = self.action_normalizer.normalize(actions)
-        noise = torch.randn(clean.shape, generator=generator)
+        noise = torch.randn(clean.shape, generator=generator).to(clean.device)
         steps = torch.randint(0, self.config.num_train_timesteps, (clean.shape[0],),
-                              generator=generator)
+                              generator=generator).to(clean.device)
         noisy = self.train_scheduler.add_noise(clean, noise, steps)
         return nn.functional.mse_loss(self.unet(noisy, steps, cond), noise)

@@ -10,6 +10,7 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_file
 
 from constrained_diffusion_ros.policy.config import PolicyConfig
+from constrained_diffusion_ros.policy.device import resolve_device
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 
 WEIGHTS_FILE = "model.safetensors"
@@ -38,10 +39,11 @@ def read_config(directory: str | Path) -> PolicyConfig:
         raise ValueError(f"{path} is not a valid policy config: {error}") from error
 
 
-def load_policy(directory: str | Path) -> DiffusionPolicy:
-    """Rebuilds the network from the JSON config and fills it; a mismatch is a ValueError,
-    found from the weights file's header and a network without storage (meta device) before
-    anything is allocated."""
+def load_policy(directory: str | Path, device: str = "cpu") -> DiffusionPolicy:
+    """Rebuilds the network from the JSON config and fills it, on `device` (device.py); a
+    mismatch is a ValueError, found from the weights file's header and a network without
+    storage (meta device) before anything is allocated."""
+    target = resolve_device(device)
     config = read_config(directory)
     path = Path(directory) / WEIGHTS_FILE
     try:
@@ -73,5 +75,5 @@ def load_policy(directory: str | Path) -> DiffusionPolicy:
         raise ValueError(f"weights in {path} hold NaN or inf ({len(broken)} tensors, first: "
                          f"{broken[0]}): a diverged training run?")
     policy.unet.load_state_dict(tensors)
-    return policy.eval().requires_grad_(False)
+    return policy.to(target).eval().requires_grad_(False)
 

@@ -80,20 +80,21 @@ class DenoisingSampler:
                hooks: Sequence[SampleHook] = ()) -> torch.Tensor:
         """(B, n_obs_steps, obs_dim) observations -> (B, horizon, action_dim) workspace actions."""
         config, normalizer = self.policy.config, self.policy.action_normalizer
-        cond = self.policy.condition(obs_history)
+        device = self.policy.device  # the network's; noise and hooks stay on the CPU
+        cond = self.policy.condition(obs_history).to(device)
         shape = (cond.shape[0], config.horizon, config.action_dim)
-        sample = torch.randn(shape, generator=generator)
+        sample = torch.randn(shape, generator=generator).to(device)
         timesteps = self.scheduler.timesteps
         for index, timestep in enumerate(timesteps):
-            noise = self.policy.unet(sample, timestep, cond)
+            noise = self.policy.unet(sample, timestep.to(device), cond)
             sample = self.scheduler.step(noise, timestep, sample, generator=generator,
                                          **self.step_options).prev_sample
             if hooks:
                 last = index == len(timesteps) - 1
                 step = DenoisingStep(index, len(timesteps), int(timestep), generator, normalizer,
                                      None if last else int(timesteps[index + 1]), self.scheduler)
-                workspace = normalizer.unnormalize(sample)
+                workspace = normalizer.unnormalize(sample.cpu())
                 for hook in hooks:
                     workspace = hook(workspace, step)
-                sample = normalizer.normalize(workspace)
-        return normalizer.unnormalize(sample)
+                sample = normalizer.normalize(workspace).to(device)
+        return normalizer.unnormalize(sample.cpu())

@@ -22,6 +22,7 @@ from tqdm import tqdm
 
 from constrained_diffusion_ros.cli import ArgumentParser, positive_int, run_command
 from constrained_diffusion_ros.policy.config import PolicyConfig
+from constrained_diffusion_ros.policy.device import DEVICES, resolve_device
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.normalizer import MinMaxNormalizer
 from constrained_diffusion_ros.policy.weights import WEIGHTS_FILE, save_policy
@@ -75,12 +76,15 @@ def save_checkpoint(directory: Path, step: int, policy: DiffusionPolicy, ema: Em
 
 
 def load_checkpoint(directory: Path, policy: DiffusionPolicy, ema: EmaWeights,
-                    optimizer: torch.optim.Optimizer, generator: torch.Generator
-                    ) -> tuple[int, list[float]]:
+                    optimizer: torch.optim.Optimizer, generator: torch.Generator,
+                    device: torch.device | str = "cpu") -> tuple[int, list[float]]:
+    """Continues a checkpoint on `device` (it is written from any device, read on any)."""
     meta = json.loads((directory / "state.json").read_text())
     if meta["policy"] != json.loads(json.dumps(policy.config.to_dict())):
         raise ValueError(f"checkpoint in {directory} was made with another configuration")
     tensors = load_file(str(directory / "state.safetensors"))
+    tensors = {k: v if k.startswith("rng.") or k.endswith(".step") else v.to(device)
+               for k, v in tensors.items()}
     policy.unet.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
     ema.shadow = {k[4:]: v for k, v in tensors.items() if k.startswith("ema.")}
     params = [p for group in optimizer.param_groups for p in group["params"]]
@@ -114,6 +118,7 @@ def plot_losses(losses: list[float], path: Path, title: str) -> None:
 
 
 def train(args: argparse.Namespace) -> dict:
+    device = resolve_device(args.device)
     torch.manual_seed(args.seed)
     demos = load_demonstrations(args.dataset)
     base = PolicyConfig(down_dims=tuple(args.down_dims))
@@ -121,7 +126,7 @@ def train(args: argparse.Namespace) -> dict:
     normalizer = {"obs": MinMaxNormalizer.fit(demos.observations).to_dict(),
                   "action": MinMaxNormalizer.fit(demos.actions).to_dict()}
     config = PolicyConfig(down_dims=tuple(args.down_dims), normalizer=normalizer)
-    policy = DiffusionPolicy(config).train()
+    policy = DiffusionPolicy(config).to(device).train()
     ema = EmaWeights(policy.unet)
     optimizer = torch.optim.AdamW(policy.unet.parameters(), lr=args.lr, betas=(0.95, 0.999),
                                   weight_decay=1e-6)
@@ -131,7 +136,8 @@ def train(args: argparse.Namespace) -> dict:
     step, losses = 0, []
     if args.resume and (checkpoint / "state.json").exists():
         try:
-            step, losses = load_checkpoint(checkpoint, policy, ema, optimizer, generator)
+            step, losses = load_checkpoint(checkpoint, policy, ema, optimizer, generator,
+                                           device)
         except (OSError, KeyError, TypeError, RuntimeError, SafetensorError,
                 json.JSONDecodeError) as error:
             raise ValueError(f"checkpoint in {checkpoint} is damaged ({type(error).__name__}: "
@@ -149,7 +155,8 @@ def train(args: argparse.Namespace) -> dict:
         while step < args.steps:
             if cursor + args.batch_size > len(order):
                 order, cursor = torch.randperm(len(sampler), generator=generator), 0
-            obs, actions = sampler.batch(order[cursor: cursor + args.batch_size])
+            obs, actions = (t.to(device) for t in
+                            sampler.batch(order[cursor: cursor + args.batch_size]))
             cursor += args.batch_size
             for group in optimizer.param_groups:
                 group["lr"] = args.lr * cosine_with_warmup(step, args.warmup, args.steps)
@@ -203,6 +210,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--overwrite", action="store_true",
                         help="replace a model already in --output (refused otherwise)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--device", default="cpu", help=f"where the network trains: {DEVICES}")
     return parser
 
 
@@ -215,6 +223,7 @@ def run(args: argparse.Namespace) -> int:
     if (output / WEIGHTS_FILE).exists() and not (args.resume or args.overwrite):
         raise ValueError(f"{output} holds a model already; pass --resume to continue its "
                          f"checkpoint, --overwrite to replace it, or another --output")
+    resolve_device(args.device)  # before anything is read or written
     try:
         train(args)
     except KeyboardInterrupt:

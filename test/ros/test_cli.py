@@ -79,6 +79,11 @@ CASES = [  # command, arguments ({name}: a path from `files`), words the one lin
     ("evaluate", "--episodes 0", "not a positive integer"),
     ("evaluate", "--steps abc", "--steps"),
     ("evaluate", "--model {horizon} --configs none --scenarios center_0.2", "horizon"),
+    ("evaluate", "--model {model} --configs none --scenarios center_0.2 --device cuda:99 "
+     "--output {tmp}/gpu", "not available"),
+    ("benchmark_policy", "--model {model} --device abacus", "unknown device"),
+    ("benchmark_policy", "--model {model} --device mps", "not supported"),
+    ("train_policy", "--dataset {dataset} --output {tmp}/gpu --device cuda:99", "not available"),
     ("benchmark_policy", "--model {action_steps}", "n_action_steps"),
     ("benchmark_policy", "--model {huge}", "down_dims"),
     ("benchmark_policy", "--model {other_shapes}", "do not match"),

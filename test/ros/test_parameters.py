@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from constrained_diffusion_ros.evaluation.launcher import random_domain_id
 from constrained_diffusion_ros.nodes import policy_node, recorder, zone_publisher
 from msg_schemas.parameters import Param, usage
 from sim_bridge import sim_node
@@ -68,3 +69,18 @@ def test_help_prints_usage_and_exits_without_starting_the_node(module: str, tmp_
     assert done.returncode == 0, done.stderr
     assert done.stdout.startswith("usage: ") and "parameters:" in done.stdout
     assert list(tmp_path.iterdir()) == []  # the recorder wrote no bag
+
+
+@pytest.mark.parametrize(("parameter", "words"), [("device:=cuda:99", "not available"),
+                                                  ("device:=abacus", "unknown device")])
+def test_a_device_that_is_not_here_stops_the_node_in_one_line(parameter: str, words: str,
+                                                                tmp_path) -> None:
+    done = subprocess.run([sys.executable, "-m", "constrained_diffusion_ros.nodes.policy_node",
+                           "--ros-args", "-p", parameter], capture_output=True, text=True,
+                          timeout=120, cwd=tmp_path,
+                          env={**os.environ, "PYTHONPATH": str(REPO),
+                               "ROS_DOMAIN_ID": str(random_domain_id())})
+    assert done.returncode == 1
+    output = (done.stdout + done.stderr).strip().splitlines()
+    assert len(output) == 1 and words in output[0], output
+    assert "Traceback" not in done.stderr

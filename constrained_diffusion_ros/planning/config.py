@@ -40,6 +40,8 @@ class ConstraintConfig:
     path_repair: bool = False
     shield: bool = False  # keep the pusher's predicted path (its disc) out, setpoint by setpoint
     from_scratch: int = 0  # >0: no hooks; draw this many whole chunks, keep the first that fits
+    candidates: int = 1  # >1: this many steered chunks per episode; keep the one the final
+    # projection and path repair moved least
     sampler: str = "ddpm"
     denoising_steps: int | None = None
     timestep_spacing: str = "leading"  # which training timesteps a shorter schedule visits
@@ -55,6 +57,11 @@ class ConstraintConfig:
         if self.denoising_steps is not None and self.denoising_steps < 1:
             raise ValueError(f"configuration {self.name!r}: denoising_steps must be at least "
                              f"1 (or left out: the training schedule's)")
+        if self.candidates < 1:
+            raise ValueError(f"configuration {self.name!r}: candidates must be at least 1")
+        if self.from_scratch and self.candidates > 1:
+            raise ValueError(f"configuration {self.name!r}: from_scratch draws its own "
+                             f"candidates")
         if self.push < 0 or self.margin < 0 or self.from_scratch < 0:
             raise ValueError(f"configuration {self.name!r}: push, margin and from_scratch "
                              "must be non-negative")
@@ -78,7 +85,7 @@ class ConstraintConfig:
     def sampler_key(self) -> tuple:
         """Configurations with equal keys can share one batch of network calls."""
         return (self.sampler, self.denoising_steps, self.timestep_spacing, self.eta,
-                self.from_scratch and self.name)
+                (self.from_scratch or self.candidates > 1) and self.name)
 
 
 def read_yaml(path: str | Path) -> object:

@@ -25,6 +25,7 @@ from constrained_diffusion_ros.sampling.hooks import (
     CommittedPrefix,
     FinalProjection,
     GradientPush,
+    LastUpdate,
     OnRows,
     PathRepair,
     Resampling,
@@ -113,6 +114,8 @@ class ConstrainedPlanner:
         area = self.effective_area(zones)
         if self.config.from_scratch:
             return self._from_scratch(observations, area, generator)
+        if self.config.candidates > 1:
+            return self._best_of(observations, zones, generator, prefix)
         pusher = self.robot.pusher(observations[:, -1])
         return self.sampler.sample(observations, generator, first + self.hooks(area, pusher))
 
@@ -154,6 +157,27 @@ class ConstrainedPlanner:
         """A new episode: the shield forgets the last one."""
         if self.shield is not None:
             self.shield.reset()
+
+    def _best_of(self, observations: Tensor, zones: RestrictedArea,
+                 generator: torch.Generator | None, prefix: CommittedPrefix | None) -> Tensor:
+        """Candidate selection (as DPCC chooses by projection cost): `candidates` chunks per
+        episode, denoised in one batch with all the hooks; keep the one whose executed
+        waypoints the final projection and path repair moved least, the one the policy's
+        own plan least disagrees with the zones (ties: the first)."""
+        k, batch = self.config.candidates, len(observations)
+        rows = torch.arange(batch).repeat_interleave(k)
+        area = self.effective_area(zones.select_rows(rows))
+        hooks = self.hooks(area, self.robot.pusher(observations[rows, -1]))
+        steering = [h for h in hooks if not isinstance(h, FinalProjection | PathRepair)]
+        last = LastUpdate()
+        first = [] if prefix is None else [prefix.repeated(k)]
+        chunks = self.sampler.sample(observations[rows], generator,
+                                     first + steering + [last] + hooks[len(steering):])
+        start = self.policy.config.first_executed
+        executed = slice(start, start + self.policy.config.n_action_steps)
+        moved = (chunks - last.sample)[:, executed].norm(dim=-1).sum(dim=-1)
+        choice = moved.reshape(batch, k).argmin(dim=1)
+        return chunks.reshape(batch, k, *chunks.shape[1:])[torch.arange(batch), choice]
 
     def _from_scratch(self, observations: Tensor, area: RestrictedArea,
                       generator: torch.Generator | None) -> Tensor:

@@ -126,6 +126,12 @@ class CommittedPrefix:
                              f"waypoints {tuple(self.known.shape[:2])}")
         self._noise: Tensor | None = None
 
+    def repeated(self, times: int) -> CommittedPrefix:
+        """The same prefix for `times` candidates of each row, rows kept together."""
+        weights = self.weights if self.weights.dim() == 1 else \
+            self.weights.repeat_interleave(times, dim=0)
+        return CommittedPrefix(self.known.repeat_interleave(times, dim=0), weights)
+
     def __call__(self, sample: Tensor, step: DenoisingStep) -> Tensor:
         if self._noise is None:
             self._noise = torch.randn(self.known.shape, generator=step.generator)
@@ -135,6 +141,19 @@ class CommittedPrefix:
         out = sample.clone()
         out[:, :count] = w * held + (1.0 - w) * sample[:, :count]
         return out
+
+
+@dataclass
+class LastUpdate:
+    """Keeps the sample as the last update left it, before the hooks after this one: what
+    they changed can then be measured (candidate selection)."""
+
+    sample: Tensor | None = None
+
+    def __call__(self, sample: Tensor, step: DenoisingStep) -> Tensor:
+        if step.index == step.total - 1:
+            self.sample = sample.clone()
+        return sample
 
 
 def prefix_weights(committed: int, soft: int) -> Tensor:

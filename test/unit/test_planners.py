@@ -97,6 +97,28 @@ def test_from_scratch_keeps_the_candidate_with_fewest_violations(
     assert torch.equal(chosen, candidates[:, 0])
 
 
+def test_candidate_selection_keeps_the_chunk_the_projection_moved_least(
+        tiny_policy: DiffusionPolicy) -> None:
+    """Every candidate is steered and projected; the one kept needed the least change, and no
+    waypoint of it is inside (the guarantee of the projection stays)."""
+    k, obs = 4, observations(3)
+    rows = torch.arange(3).repeat_interleave(k)
+    most = ZoneSet.from_polygons([rectangle(0, 0, 400, 512)])
+    steered = dict(resample=True, push=10.0)
+    projected = planner_for(tiny_policy, ddim("p", project=True, **steered)).plan(
+        obs[rows], most, generator=seeded())
+    raw = planner_for(tiny_policy, ddim("s", **steered)).plan(obs[rows], most,
+                                                              generator=seeded())
+    moved = (executed(tiny_policy, projected) - executed(tiny_policy, raw)).norm(dim=-1)
+    moved = moved.sum(dim=-1).reshape(3, k)
+    assert (moved.amin(dim=1) < moved.amax(dim=1)).all()  # the choice matters in every row
+    chosen = planner_for(tiny_policy, ddim("best", project=True, candidates=k, **steered)
+                         ).plan(obs, most, generator=seeded())
+    expected = projected.reshape(3, k, 16, 2)[torch.arange(3), moved.argmin(dim=1)]
+    torch.testing.assert_close(chosen, expected)
+    assert not most.contains(chosen).any()
+
+
 def test_each_episode_is_constrained_by_its_own_zone(tiny_policy: DiffusionPolicy) -> None:
     # Halves of the plane (beyond the walls too, so the only way out is across x = 256).
     left = ZoneSet.from_polygons([rectangle(-2000, -2000, 256, 2000)])

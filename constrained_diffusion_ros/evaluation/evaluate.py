@@ -114,6 +114,8 @@ def run(args: argparse.Namespace) -> int:
     previous = {}
     if args.reuse and (output / "results.json").is_file():
         previous = reusable_cells(output / "results.json", args.episodes)
+        if args.figure:  # a figure asked for is drawn: its cell runs again
+            previous.pop(drawn, None)
     cells, started, figure, reused = [], time.monotonic(), None, 0
     pending: dict[tuple, list] = {}  # sampler key -> [(configuration, its scenarios)]
     for config in configs:

@@ -52,7 +52,8 @@ class NodeProcesses:
         return {**os.environ, "ROS_DOMAIN_ID": str(self.domain_id), "OMP_NUM_THREADS": threads,
                 "MKL_NUM_THREADS": threads, "PYTHONUNBUFFERED": "1",
                 "RCUTILS_LOGGING_BUFFERED_STREAM": "0",
-                "ROS_LOG_DIR": str(self.log_dir / "ros_log")}
+                "ROS_LOG_DIR": str(self.log_dir / "ros_log"),
+                "ROS_HOME": str(self.log_dir / "ros_home")}  # what nodes remember: per run
 
     def start(self, name: str, node: str | None = None, remap: dict[str, str] | None = None,
               threads: int | None = None, **parameters: object

@@ -24,6 +24,8 @@ from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_
 from constrained_diffusion_ros.evaluation.rollout import RolloutLog
 from constrained_diffusion_ros.evaluation.scenarios import Scenario, load_scenarios
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
+from constrained_diffusion_ros.planning.config import load_configurations
+from constrained_diffusion_ros.policy.weights import read_config
 from msg_schemas import NAMESPACE, SERVICES, TOPICS
 from msg_schemas.conversions import point_of, pose2d_of, step_of_stamp, zones_shown
 from sim_bridge import CONTROL_HZ
@@ -79,6 +81,12 @@ def run_trial(args: argparse.Namespace) -> dict:
         raise ValueError(f"unknown scenario {args.scenario!r}; known: {', '.join(scenarios)}")
     if args.keepout_grid and (scenario is None or scenario.plugin):
         raise ValueError("--keepout-grid needs a scenario of zones (not a plug-in)")
+    # What the policy node would refuse, refused here first: one line, no output directory.
+    configurations = load_configurations(args.configurations_file)
+    if args.configuration not in configurations:
+        raise ValueError(f"unknown configuration {args.configuration!r}; known: "
+                         f"{', '.join(configurations)}")
+    read_config(args.model)
     output = Path(args.output or f"trials/{args.scenario}_{args.configuration}_{args.seed}")
     if output.exists():
         raise ValueError(f"{output} exists already; choose another --output (trials are never "

@@ -17,11 +17,13 @@ zones in force stay in force. Counters of both are in the node's diagnostics (`/
 from __future__ import annotations
 
 import gc
+import os
 import pickle
 import sys
 import threading
 import time
 from collections import OrderedDict
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -192,6 +194,11 @@ class PolicyNode(Node):
                                workspace=self.robot.workspace)
         if self.mode == "realtime" and values["planning_process"]:
             _check_picklable(self.zones.fixed, values["restricted_area"])
+        # $ROS_HOME/constrained_diffusion_ros/<node>.cleared, as ROS keeps its logs there.
+        ros_home = Path(os.environ.get("ROS_HOME") or Path.home() / ".ros")
+        self.clear_file = ros_home / "constrained_diffusion_ros" / (
+            self.get_fully_qualified_name().strip("/").replace("/", "__") + ".cleared")
+        self.zones.cleared_at = self._remembered_clear()
         self.zone_counts = {"zone_messages": 0, "zones_applied": 0, "zones_refused": 0,
                             "zones_stale": 0, "zone_batches": 0}
         self.noise_seed = values["noise_seed"]
@@ -594,11 +601,25 @@ class PolicyNode(Node):
             self._zones_changed()
 
     def _on_clear(self, _request, response):
-        count = len(self.zones)
-        self.zones.clear()
+        count, now = len(self.zones), self._now()
+        self.zones.clear(now)
         self._zones_changed()
         response.success, response.message = True, f"cleared {count} zones"
+        try:  # remembered across restarts: latched publishers replay what was cleared
+            self.clear_file.parent.mkdir(parents=True, exist_ok=True)
+            self.clear_file.write_text(f"{now!r}\n")
+        except OSError as error:
+            self.get_logger().warning(f"cannot remember the clear in {self.clear_file} "
+                                      f"({error.strerror}): a restart would revive latched "
+                                      f"zones stamped before it")
         return response
+
+    def _remembered_clear(self) -> float | None:
+        """When zones were last cleared, by this node name in an earlier run (None: never)."""
+        try:
+            return float(self.clear_file.read_text())
+        except (OSError, ValueError):
+            return None
 
     def _publish_markers(self) -> None:
         stamp = self.get_clock().now().to_msg()

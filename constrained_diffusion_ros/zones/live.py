@@ -75,6 +75,7 @@ class LiveZones:
         self.workspace = workspace  # zones are clipped to it, so what is accepted is enforced
         self.fixed = fixed  # always in force besides the zones (a plug-in check)
         self._union: tuple[ZoneSet, RestrictedArea] | None = None
+        self.cleared_at: float | None = None  # the last clear: zones stamped before are stale
         self._lock = threading.Lock()
         self._zones: dict[ZoneId, _Zone] = {}
         self._version = 0
@@ -89,7 +90,8 @@ class LiveZones:
 
         `lifetime` in the same clock as `now`; None or 0 (as in ROS markers) means forever. Its
         age counts from `stamp` (when the zone was published, as nav2's collision monitor
-        does), from `now` if there is none; a stamp from the future counts as now.
+        does), from `now` if there is none; a stamp from the future counts as now. A zone
+        stamped at or before `cleared_at` (the last `clear`) is stale too.
         Invalid vertices raise ValueError before anything changes, so the zones in force stay.
         The caps bound what messages may ask for; `capped=False` is for zones the node derives
         itself (a keep-out mask's pieces), which it does not refuse for their number or size.
@@ -101,8 +103,9 @@ class LiveZones:
             raise ValueError(f"zone {zone_id!r}: lifetime must be >= 0 or None, got {lifetime}")
         expires_at = min(now, now if stamp is None else stamp) + lifetime if lifetime \
             else math.inf
-        if expires_at <= now:
-            return False
+        if expires_at <= now or (stamp is not None and self.cleared_at is not None
+                                 and stamp <= self.cleared_at):
+            return False  # expired, or published before the last clear (a replay)
         if capped and len(vertices) > self.max_vertices:
             raise ValueError(f"zone {zone_id!r}: {len(vertices)} vertices, more than the "
                              f"{self.max_vertices} allowed")
@@ -149,7 +152,10 @@ class LiveZones:
             self._changed()
             return True
 
-    def clear(self) -> None:
+    def clear(self, now: float | None = None) -> None:
+        """Drop every zone; with `now`, zones stamped until then stay gone when replayed."""
+        if now is not None:
+            self.cleared_at = now
         with self._lock:
             if self._zones:
                 self._zones.clear()

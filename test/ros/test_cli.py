@@ -101,6 +101,8 @@ CASES = [  # command, arguments ({name}: a path from `files`), words the one lin
     ("trial", "--scenario nowhere --output {tmp}/t1", "nowhere"),
     ("trial", "--scenarios-file {yaml_syntax}/configurations.yaml --output {tmp}/t2", "line 2"),
     ("trial", "--output {existing}", "exists"),
+    ("trial", "--configuration nothing --output {tmp}/t3", "unknown configuration 'nothing'"),
+    ("trial", "--model {tmp}/none --output {tmp}/t4", "none"),
     ("recover_bag", "{tmp}/nowhere", "no metadata.yaml"),
     ("recover_bag", "{not_a_bag}", "not rosbag2 metadata"),
 ]

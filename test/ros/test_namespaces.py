@@ -9,10 +9,11 @@ from geometry_msgs.msg import PolygonInstanceStamped
 from rclpy.duration import Duration
 from rclpy.qos import DurabilityPolicy
 from ros_helpers import DISCOVERY_S, shown_zone_ids
+from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from constrained_diffusion_ros.zones import rectangle
-from msg_schemas import TOPICS, qos_profile
+from msg_schemas import SERVICES, TOPICS, qos_profile
 from msg_schemas.conversions import zone_message
 
 ROBOTS = ("/robot1", "/robot2")
@@ -127,3 +128,33 @@ def test_a_restarted_policy_keeps_the_zones_in_force_and_not_the_expired_ones(
     assert ros.spin_until(lambda: len(markers) > before and shown_zone_ids(markers) == [8]), \
         processes.logs()
     assert all(7 not in (shown_zone_ids([m]) or []) for m in markers)  # never shown, never revived
+
+
+def test_a_restarted_policy_does_not_revive_a_cleared_zone(
+        ros, processes, tiny_model, configurations_file) -> None:
+    """Zone 5 is published once on a latched topic and cleared by the service; restarted, the
+    policy gets it again from the latched history and keeps it gone (the clear is remembered
+    under ROS_HOME), while zone 6, published after the clear, is in force."""
+    markers = markers_of(ros)
+    zones = zone_publisher(ros)
+    clear = ros.node.create_client(Trigger, SERVICES["clear_zones"].resolved("/pusht"))
+
+    def start() -> None:
+        processes.start("policy_node", model=tiny_model, configurations_file=configurations_file,
+                        configuration="fast_project")
+
+    start()
+    assert ros.spin_until(lambda: zones.get_subscription_count() == 2), processes.logs()
+    publish(ros, zones, 5)
+    assert ros.spin_until(lambda: shown_zone_ids(markers) == [5]), processes.logs()
+    assert clear.wait_for_service(timeout_sec=DISCOVERY_S)
+    future = clear.call_async(Trigger.Request())
+    assert ros.spin_until(future.done) and future.result().message == "cleared 1 zones"
+    publish(ros, zones, 6, offset=100.0)
+    assert ros.spin_until(lambda: shown_zone_ids(markers) == [6]), processes.logs()
+    assert processes.stop("policy_node") == 0
+    before = len(markers)
+    start()
+    assert ros.spin_until(lambda: len(markers) > before and shown_zone_ids(markers) == [6]), \
+        processes.logs()
+    assert all(5 not in (shown_zone_ids([m]) or []) for m in markers[before:])

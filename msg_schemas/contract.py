@@ -79,7 +79,8 @@ TOPICS: dict[str, Endpoint] = {e.key: e for e in (
 
 SERVICES: dict[str, Endpoint] = {e.key: e for e in (
     Endpoint("clear_zones", "std_srvs/srv/Trigger", "services", "policy_node", (), "",
-             "Remove every zone in force"),
+             "Remove every zone in force (zones stamped before the call stay gone, across "
+             "restarts too)"),
     Endpoint("reset", "std_srvs/srv/Trigger", "services", "sim_node", (), "",
              "Reset the scene to the sim node's `seed` parameter (set it first)"),
 )}

@@ -136,3 +136,21 @@ def test_soft_weights_draw_the_waypoints_after_the_prefix_toward_the_old_chunk(
     assert gap_soft < 0.8 * gap_hard
     with pytest.raises(ValueError, match="weights"):
         CommittedPrefix(KNOWN, prefix_weights(2, 0))
+
+
+def test_timestep_spacing_and_eta_shape_the_ddim_schedule(tiny_policy: DiffusionPolicy) -> None:
+    """Trailing starts at the noisiest training step, leading below it; eta reaches the
+    scheduler's step (eta 1 adds noise at every step: another chunk from the same seed)."""
+    leading = DenoisingSampler(tiny_policy, "ddim", 10)
+    trailing = DenoisingSampler(tiny_policy, "ddim", 10, timestep_spacing="trailing")
+    assert leading.scheduler.timesteps[0] == 90 and leading.scheduler.timesteps[-1] == 0
+    assert trailing.scheduler.timesteps[0] == 99 and trailing.scheduler.timesteps[-1] == 9
+    with pytest.raises(ValueError, match="timestep spacing"):
+        DenoisingSampler(tiny_policy, "ddim", 10, timestep_spacing="sideways")
+    obs = observations(2)
+    deterministic, stochastic = (
+        DenoisingSampler(tiny_policy, "ddim", 4, "trailing", eta).sample(
+            obs, torch.Generator().manual_seed(0)) for eta in (0.0, 1.0))
+    again = DenoisingSampler(tiny_policy, "ddim", 4, "trailing", 0.0).sample(
+        obs, torch.Generator().manual_seed(0))
+    assert torch.equal(deterministic, again) and not torch.equal(deterministic, stochastic)

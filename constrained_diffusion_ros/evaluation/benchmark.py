@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 
@@ -39,7 +40,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="which training timesteps a shorter schedule visits")
     parser.add_argument("--seed", type=int, default=0, help="seed of the sampling noise")
     parser.add_argument("--device", default="cpu", help=f"where the network runs: {DEVICES}")
-    parser.add_argument("--threads", type=positive_int, default=2, help="torch threads")
+    parser.add_argument("--threads", type=positive_int, default=os.cpu_count() or 1,
+                        help="torch threads (default: this machine's cores)")
     parser.add_argument("--json", help="also write the figures to this JSON file")
     return parser
 

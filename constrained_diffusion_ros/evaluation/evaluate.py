@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -50,8 +51,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="keep the cells already in OUTPUT/results.json and run only the "
                              "missing ones (after adding a configuration or a scenario, say)")
     parser.add_argument("--device", default="cpu", help=f"where the network runs: {DEVICES}")
-    parser.add_argument("--threads", type=positive_int, default=2,
-                        help="torch threads (this machine's cores, if nothing else runs)")
+    parser.add_argument("--threads", type=positive_int, default=os.cpu_count() or 1,
+                        help="torch threads (default: this machine's cores; fewer if other "
+                             "work runs beside it)")
     parser.add_argument("--config-dir", default=str(config_dir()),
                         help="directory with scenarios.yaml, configurations.yaml and "
                              "evaluation.yaml (the report's labels)")

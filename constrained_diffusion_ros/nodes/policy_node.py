@@ -17,6 +17,7 @@ zones in force stay in force. Counters of both are in the node's diagnostics (`/
 from __future__ import annotations
 
 import gc
+import json
 import os
 import pickle
 import sys
@@ -80,7 +81,8 @@ ZONE_BATCH_MAX = 10_000  # zone messages taken in one callback at most
 PENDING_HALVES = 64  # observation halves (keypoints or pusher) kept waiting for their other half
 MARKER_NAMESPACE = "zones"  # zone markers: marker namespace <node namespace>/zones, id = zone id
 # Their rise since the last report sets the diagnostic level.
-HEALTH_COUNTERS = ("violations", "unsound_setpoints", "zones_refused", "held_steps")
+HEALTH_COUNTERS = ("violations", "unsound_setpoints", "zones_refused", "held_steps",
+                   "planning_errors")
 STATUS_PERIOD_S = 0.5  # realtime: status this often (zone markers: at most once per tick)
 
 PARAMETERS = (
@@ -194,11 +196,12 @@ class PolicyNode(Node):
                                workspace=self.robot.workspace)
         if self.mode == "realtime" and values["planning_process"]:
             _check_picklable(self.zones.fixed, values["restricted_area"])
-        # $ROS_HOME/constrained_diffusion_ros/<node>.cleared, as ROS keeps its logs there.
+        # $ROS_HOME/constrained_diffusion_ros/<node>.cleared: the (id, stamp) of cleared zones,
+        # so their replays stay gone after a restart (exact messages: any clock, any publisher).
         ros_home = Path(os.environ.get("ROS_HOME") or Path.home() / ".ros")
         self.clear_file = ros_home / "constrained_diffusion_ros" / (
             self.get_fully_qualified_name().strip("/").replace("/", "__") + ".cleared")
-        self.zones.cleared_at = self._remembered_clear()
+        self.zones.cleared = self._remembered_clears()
         self.zone_counts = {"zone_messages": 0, "zones_applied": 0, "zones_refused": 0,
                             "zones_stale": 0, "zone_batches": 0}
         self.noise_seed = values["noise_seed"]
@@ -449,7 +452,9 @@ class PolicyNode(Node):
                           lead=self.controller.lead, ticks=self.clock.ticks,
                           ticks_missed=self.clock.missed,
                           tick_late_p99_ms=f"{1000 * self.clock.late_p99():.1f}",
-                          clock_realtime=self.clock.realtime)
+                          clock_realtime=self.clock.realtime,
+                          planning_errors=self.controller.worker.errors,
+                          planning_error=one_line(self.controller.worker.error or ""))
         values["zone_ids"] = ",".join(str(i) for i in self.zones.ids)
         level, message = self._health(values)
         status = DiagnosticStatus(level=level, name=self.get_fully_qualified_name(),
@@ -470,6 +475,9 @@ class PolicyNode(Node):
                 f"space, or a non-finite action): the pusher held")
         if since["violations"]:
             return DiagnosticStatus.ERROR, f"{since['violations']} setpoint(s) inside a zone"
+        if since["planning_errors"]:
+            return DiagnosticStatus.ERROR, (f"planning failed {since['planning_errors']} "
+                                            f"time(s): {values['planning_error']}")
         problems = []
         if since["zones_refused"]:
             problems.append(f"{since['zones_refused']} zone message(s) refused")
@@ -601,25 +609,26 @@ class PolicyNode(Node):
             self._zones_changed()
 
     def _on_clear(self, _request, response):
-        count, now = len(self.zones), self._now()
-        self.zones.clear(now)
+        count = len(self.zones)
+        self.zones.clear()
         self._zones_changed()
         response.success, response.message = True, f"cleared {count} zones"
         try:  # remembered across restarts: latched publishers replay what was cleared
             self.clear_file.parent.mkdir(parents=True, exist_ok=True)
-            self.clear_file.write_text(f"{now!r}\n")
+            self.clear_file.write_text(json.dumps(list(self.zones.cleared)))
         except OSError as error:
             self.get_logger().warning(f"cannot remember the clear in {self.clear_file} "
-                                      f"({error.strerror}): a restart would revive latched "
-                                      f"zones stamped before it")
+                                      f"({error.strerror}): a restart would revive the "
+                                      f"cleared zones that latched publishers replay")
         return response
 
-    def _remembered_clear(self) -> float | None:
-        """When zones were last cleared, by this node name in an earlier run (None: never)."""
+    def _remembered_clears(self) -> dict[tuple, None]:
+        """The (id, stamp) of zones cleared by this node name in earlier runs."""
         try:
-            return float(self.clear_file.read_text())
-        except (OSError, ValueError):
-            return None
+            pairs = json.loads(self.clear_file.read_text())
+            return {(zone_id, float(stamp)): None for zone_id, stamp in pairs}
+        except (OSError, ValueError, TypeError):
+            return {}
 
     def _publish_markers(self) -> None:
         stamp = self.get_clock().now().to_msg()

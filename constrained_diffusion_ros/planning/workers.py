@@ -82,7 +82,8 @@ class BackgroundPlanner:
         self._busy = False
         self._stopping = False
         self._wake = threading.Condition()
-        self.error: BaseException | None = None
+        self.error: BaseException | None = None  # the last fault
+        self.errors = 0  # faults so far
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
@@ -124,7 +125,7 @@ class BackgroundPlanner:
                 chunk = self._plan(job, self.generator)
                 self._on_result(PlanResult(job, chunk, time.perf_counter() - began))
             except Exception as error:  # reported by the owner; the worker keeps serving
-                self.error = error
+                self.error, self.errors = error, self.errors + 1
                 logging.getLogger(__name__).exception("planning failed")
             finally:
                 with self._wake:
@@ -134,8 +135,11 @@ class BackgroundPlanner:
 LOGGER = logging.getLogger(__name__)
 
 
-def _send(connection: Connection, message: tuple) -> None:
-    connection.send_bytes(pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL))
+def _send(connection: Connection, kind: str, payload: object) -> None:
+    """(kind, pickled payload): the kind always reads back, even where the payload cannot (a
+    class the other side cannot import), so every job gets its reply."""
+    data = pickle.dumps(payload, protocol=pickle.HIGHEST_PROTOCOL)
+    connection.send_bytes(pickle.dumps((kind, data), protocol=pickle.HIGHEST_PROTOCOL))
 
 
 def serve(descriptor: int, threads: int, niceness: int) -> None:
@@ -150,27 +154,30 @@ def serve(descriptor: int, threads: int, niceness: int) -> None:
     generator = torch.Generator()
     while True:
         try:
-            kind, payload = pickle.loads(connection.recv_bytes())
+            kind, data = pickle.loads(connection.recv_bytes())
         except (EOFError, OSError):
             return
         if kind == "stop":
             return
-        if kind == "policy":
-            policy = payload
-        elif kind == "planner":
-            planner = ConstrainedPlanner(policy, *payload)
-        elif kind == "seed":
-            generator.manual_seed(payload)
-        elif kind == "job":
-            began = time.perf_counter()
-            job, same_zones = payload
-            job = replace(job, zones=zones) if same_zones else job
-            zones = job.zones
-            try:
-                reply = ("chunk", plan_chunk(planner, job, generator))
-            except Exception as error:  # reported by the node; the child keeps serving
-                reply = ("error", f"{type(error).__name__}: {error}")
-            _send(connection, (*reply, time.perf_counter() - began))
+        began = time.perf_counter()
+        try:  # a fault is reported to the node; the child keeps serving
+            payload = pickle.loads(data)
+            if kind == "policy":
+                policy = payload
+            elif kind == "planner":
+                planner = ConstrainedPlanner(policy, *payload)
+            elif kind == "seed":
+                generator.manual_seed(payload)
+            elif kind == "job":
+                job, same_zones = payload
+                job = replace(job, zones=zones) if same_zones else job
+                zones = job.zones
+                _send(connection, "chunk", (plan_chunk(planner, job, generator),
+                                            time.perf_counter() - began))
+        except Exception as error:
+            reply = "job_error" if kind == "job" else "error"  # only a job's reply ends it
+            _send(connection, reply, (f"{type(error).__name__}: {error}",
+                                      time.perf_counter() - began))
 
 
 class PlanningProcess:
@@ -203,10 +210,11 @@ class PlanningProcess:
         self._in_flight: PlanJob | None = None
         self._pending: PlanJob | None = None
         self._sent_zones: RestrictedArea | None = None
-        self.error: BaseException | None = None
+        self.error: BaseException | None = None  # the last fault
+        self.errors = 0  # faults so far
         self._stopping = False
         with self._lock:  # the weights once (they wait for the child to start reading)
-            _send(self._connection, ("policy", planner.policy))
+            _send(self._connection, "policy", planner.policy)
         self.use(planner)
         self.reseed(noise_seed)
         self._receiver = threading.Thread(target=self._receive, name=f"{name}_receiver",
@@ -225,26 +233,36 @@ class PlanningProcess:
 
     def submit(self, job: PlanJob) -> None:
         with self._lock:
+            if self.error is not None and not self._process_alive():
+                return  # nothing plans any more: the node reports `error`
             if self._in_flight is None:
                 self._start(job)
             else:
                 self._pending = job
 
+    def _process_alive(self) -> bool:
+        return self._process.poll() is None
+
     def use(self, planner: ConstrainedPlanner) -> None:
         """Plan with another configuration (of the same policy) from the next job on; a few
         hundred bytes, so the caller never waits for the child to finish a plan."""
-        with self._lock:
-            _send(self._connection, ("planner", (planner.config, planner.robot)))
+        self._tell("planner", (planner.config, planner.robot))
 
     def reseed(self, noise_seed: int) -> None:
         """A new episode: the same noise as a fresh node (applied before the next job)."""
+        self._tell("seed", noise_seed)
+
+    def _tell(self, kind: str, payload: object) -> None:
         with self._lock:
-            _send(self._connection, ("seed", noise_seed))
+            try:
+                _send(self._connection, kind, payload)
+            except OSError as error:  # the child is gone: said once, by the receiver
+                self._fail(f"planning process gone: {error}")
 
     def shutdown(self, timeout: float = 5.0) -> None:
         self._stopping = True
         with self._lock, contextlib.suppress(OSError, ValueError):
-            _send(self._connection, ("stop", None))
+            _send(self._connection, "stop", None)
         try:
             self._process.wait(timeout)
         except subprocess.TimeoutExpired:
@@ -255,29 +273,40 @@ class PlanningProcess:
 
     def _start(self, job: PlanJob) -> None:
         """Send a job, its zones only when they are not the ones sent last (the child keeps
-        those, and what it derived from them); the caller holds the lock."""
-        self._in_flight = job
+        those, and what it derived from them); the caller holds the lock. A job that cannot be
+        sent is reported in `error` and dropped (the next one is asked for as usual)."""
         same = job.zones is not None and job.zones is self._sent_zones
-        self._sent_zones = job.zones
-        _send(self._connection, ("job", (replace(job, zones=None) if same else job, same)))
+        try:
+            _send(self._connection, "job", (replace(job, zones=None) if same else job, same))
+        except (OSError, pickle.PicklingError, TypeError, AttributeError) as error:
+            self._fail(f"cannot send a plan to the planning process: {type(error).__name__}: "
+                       f"{error}")
+            return
+        self._in_flight, self._sent_zones = job, job.zones
+
+    def _fail(self, message: str) -> None:
+        self.error, self.errors = RuntimeError(message), self.errors + 1
+        LOGGER.error("planning process: %s", message)
 
     def _receive(self) -> None:
         while True:
             try:
-                kind, payload, seconds = pickle.loads(self._connection.recv_bytes())
+                kind, data = pickle.loads(self._connection.recv_bytes())
+                payload, seconds = pickle.loads(data)
             except (EOFError, OSError):
-                if not self._stopping:  # `busy` stays true: nothing more is planned
-                    self.error = RuntimeError(f"the planning process exited (code "
-                                              f"{self._process.poll()})")
-                    LOGGER.error("%s", self.error)
+                if not self._stopping:  # nothing more is planned: the node reports `error`
+                    with self._lock:
+                        self._in_flight = self._pending = None
+                    self._fail(f"the planning process exited (code {self._process.wait()})")
                 return
-            with self._lock:
-                job, self._in_flight = self._in_flight, None
-                if self._pending is not None:
+            if kind != "chunk":
+                self._fail(payload)
+                if kind == "error":
+                    continue  # a configuration or seed that failed: no job ended
+            elif not self._stopping:
+                self._on_result(PlanResult(self._in_flight, np.asarray(payload), seconds))
+            with self._lock:  # not busy until the result is handed over
+                self._in_flight = None
+                if self._pending is not None and not self._stopping:
                     self._start(self._pending)
-                    self._pending = None
-            if kind == "error":
-                self.error = RuntimeError(payload)
-                LOGGER.error("planning failed: %s", payload)
-            else:
-                self._on_result(PlanResult(job, np.asarray(payload), seconds))
+                self._pending = None

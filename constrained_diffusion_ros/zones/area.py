@@ -30,9 +30,6 @@ MARCH_STEPS = 128  # sphere-tracing steps along a segment
 TOUCH = 1e-6  # px: a segment this close to the area has reached it
 
 
-CACHED = ("_derived_areas", "_tensors")  # attributes rebuilt on demand, never pickled
-
-
 class RestrictedArea(ABC):
     """A region the planner keeps actions out of; subclass it and implement `signed_distance`.
 
@@ -177,14 +174,16 @@ class RestrictedArea(ABC):
     def _bounded(self, workspace: Bounds) -> RestrictedArea:
         return AreaUnion([self, OutsideBox(workspace)])
 
+    _caches: tuple[str, ...] = ("_derived_areas",)  # dicts rebuilt on demand, never pickled
+
     def __getstate__(self) -> dict:
         """Pickled (to the planning process) without what is derived and cached: it is rebuilt
         on demand, and it can be a hundred times the size of the zones themselves."""
-        return {k: v for k, v in self.__dict__.items() if k not in CACHED}
+        return {k: v for k, v in self.__dict__.items() if k not in self._caches}
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
-        self.__dict__.update({k: {} for k in CACHED})
+        self.__dict__.update({k: {} for k in self._caches})
 
     def _derived(self, key: Hashable, build: Callable[[], RestrictedArea]) -> RestrictedArea:
         """Derived areas, kept on the instance: areas are immutable, so they never go stale."""

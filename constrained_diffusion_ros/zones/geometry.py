@@ -153,6 +153,8 @@ class ZoneSet(RestrictedArea):
 
     compute_dtype: torch.dtype = torch.float64
 
+    _caches = ("_derived_areas", "_tensors")
+
     def __init__(self, polygons: Iterable[shapely.Polygon] = ()) -> None:
         """Merge already valid shapely polygons; use `from_polygons` for raw vertex lists."""
         union = shapely.union_all([p for p in polygons if not p.is_empty])

@@ -23,12 +23,14 @@ class _Zone:
     vertices: np.ndarray  # (V, 2) the outline in force, for viewers
     expires_at: float  # math.inf: never
     capped: bool = True  # counts toward max_zones (a message's zone; not a mask's piece)
+    stamp: float | None = None  # the message's stamp (None: unstamped)
 
 
 # At these caps a batch of zone messages costs under one control period and a DDIM plan about
 # 0.4 s on 2 cores (scripts/bench_zones.py; README, "What zones cost").
 DEFAULT_MAX_ZONES = 32
 DEFAULT_MAX_VERTICES = 64
+CLEARED_KEPT = 4096  # (id, stamp) pairs of cleared zones remembered at most
 
 
 @dataclass
@@ -75,7 +77,7 @@ class LiveZones:
         self.workspace = workspace  # zones are clipped to it, so what is accepted is enforced
         self.fixed = fixed  # always in force besides the zones (a plug-in check)
         self._union: tuple[ZoneSet, RestrictedArea] | None = None
-        self.cleared_at: float | None = None  # the last clear: zones stamped before are stale
+        self.cleared: dict[tuple[ZoneId, float], None] = {}  # cleared (id, stamp), in order
         self._lock = threading.Lock()
         self._zones: dict[ZoneId, _Zone] = {}
         self._version = 0
@@ -90,8 +92,8 @@ class LiveZones:
 
         `lifetime` in the same clock as `now`; None or 0 (as in ROS markers) means forever. Its
         age counts from `stamp` (when the zone was published, as nav2's collision monitor
-        does), from `now` if there is none; a stamp from the future counts as now. A zone
-        stamped at or before `cleared_at` (the last `clear`) is stale too.
+        does), from `now` if there is none; a stamp from the future counts as now. A message
+        with the id and stamp of a zone that was cleared is a stale replay too.
         Invalid vertices raise ValueError before anything changes, so the zones in force stay.
         The caps bound what messages may ask for; `capped=False` is for zones the node derives
         itself (a keep-out mask's pieces), which it does not refuse for their number or size.
@@ -103,9 +105,8 @@ class LiveZones:
             raise ValueError(f"zone {zone_id!r}: lifetime must be >= 0 or None, got {lifetime}")
         expires_at = min(now, now if stamp is None else stamp) + lifetime if lifetime \
             else math.inf
-        if expires_at <= now or (stamp is not None and self.cleared_at is not None
-                                 and stamp <= self.cleared_at):
-            return False  # expired, or published before the last clear (a replay)
+        if expires_at <= now or (stamp is not None and (zone_id, stamp) in self.cleared):
+            return False  # expired, or a replay of a message that was cleared
         if capped and len(vertices) > self.max_vertices:
             raise ValueError(f"zone {zone_id!r}: {len(vertices)} vertices, more than the "
                              f"{self.max_vertices} allowed")
@@ -120,7 +121,7 @@ class LiveZones:
                     in_force >= self.max_zones:
                 raise ValueError(f"zone {zone_id!r}: {self.max_zones} zones in force already "
                                  f"(the cap); remove one first")
-            self._zones[zone_id] = _Zone(polygon, vertices, expires_at, capped)
+            self._zones[zone_id] = _Zone(polygon, vertices, expires_at, capped, stamp)
             if previous is None or not previous.polygon.equals_exact(polygon, 0.0):
                 self._changed()  # a re-published, identical zone only refreshes its lifetime
         return True
@@ -152,11 +153,14 @@ class LiveZones:
             self._changed()
             return True
 
-    def clear(self, now: float | None = None) -> None:
-        """Drop every zone; with `now`, zones stamped until then stay gone when replayed."""
-        if now is not None:
-            self.cleared_at = now
+    def clear(self) -> None:
+        """Drop every zone; a stamped one stays gone when its message is replayed (a latched
+        publisher's history): its (id, stamp) joins `cleared`."""
         with self._lock:
+            self.cleared.update(((i, z.stamp), None) for i, z in self._zones.items()
+                                if z.stamp is not None)
+            while len(self.cleared) > CLEARED_KEPT:
+                self.cleared.pop(next(iter(self.cleared)))
             if self._zones:
                 self._zones.clear()
                 self._changed()

@@ -121,12 +121,16 @@ def test_slivers_and_specks_are_refused_and_the_zones_in_force_stay() -> None:
     assert "area" in reasons[2] and "area" in reasons[3] and "sliver" in reasons[4]
 
 
-def test_after_a_clear_a_zone_stamped_before_it_is_a_stale_replay() -> None:
+def test_after_a_clear_a_replay_of_a_cleared_message_is_stale() -> None:
+    """Exact replays (id and stamp) only: whatever clock the stamps come from, a new message
+    for the id, even stamped earlier (a sim clock that restarted), is taken."""
     zones = LiveZones()
     zones.upsert(1, rectangle(0, 0, 10, 10), now=5.0, stamp=4.0)
-    zones.clear(now=5.0)
+    zones.upsert(2, rectangle(20, 20, 30, 30), now=5.0)  # unstamped: cannot be told apart
+    zones.clear()
+    assert list(zones.cleared) == [(1, 4.0)] and zones.ids == []
     assert not zones.upsert(1, rectangle(0, 0, 10, 10), now=6.0, stamp=4.0)  # replayed
     assert zones.ids == []
-    assert zones.upsert(2, rectangle(0, 0, 10, 10), now=6.0, stamp=5.5)  # published after
-    assert zones.upsert(3, rectangle(20, 20, 30, 30), now=6.0)  # unstamped: from arrival
-    assert zones.ids == [2, 3]
+    assert zones.upsert(1, rectangle(0, 0, 10, 10), now=6.0, stamp=0.5)  # a new message
+    assert zones.upsert(3, rectangle(20, 20, 30, 30), now=6.0, stamp=4.0)
+    assert zones.ids == [1, 3]

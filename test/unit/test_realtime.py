@@ -4,7 +4,10 @@ plan, the background planner's thread, and the executor with an inference delay.
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -28,6 +31,7 @@ from constrained_diffusion_ros.planning.workers import (
     plan_chunk,
 )
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
+from constrained_diffusion_ros.policy.weights import save_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones import LiveZones, rectangle
 
@@ -163,11 +167,39 @@ def test_the_planning_process_plans_what_the_thread_would_in_a_process_of_its_ow
         np.testing.assert_array_equal(result.chunk, want)
 
 
-def test_the_planning_process_exits_when_the_node_is_gone(tiny_policy: DiffusionPolicy) -> None:
-    worker = PlanningProcess(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT), lambda r: None)
-    worker._stopping = True  # as if the node were killed: its end closes, no stop sent
-    worker._connection.close()
-    assert worker._process.wait(timeout=60) == 0
+def test_the_planning_process_exits_when_the_node_is_killed(make_tiny_policy, tmp_path) -> None:
+    """SIGKILL to the node's process: its end of the socket closes with it, and the child,
+    reading it, exits instead of lingering."""
+    model = save_policy(make_tiny_policy(0), tmp_path / "model")
+    node = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time\n"
+        "from constrained_diffusion_ros.planning.planners import ConstrainedPlanner\n"
+        "from constrained_diffusion_ros.planning.config import ConstraintConfig\n"
+        "from constrained_diffusion_ros.planning.workers import PlanningProcess\n"
+        "from constrained_diffusion_ros.policy.weights import load_policy\n"
+        "from constrained_diffusion_ros.pusht import PUSHT_ROBOT\n"
+        f"policy = load_policy({str(model)!r})\n"
+        "planner = ConstrainedPlanner(policy, ConstraintConfig('free'), PUSHT_ROBOT)\n"
+        "worker = PlanningProcess(planner, lambda result: None)\n"
+        "print(worker.pid, flush=True)\n"
+        "time.sleep(120)\n")], stdout=subprocess.PIPE, text=True)
+    try:
+        child = int(node.stdout.readline())
+    finally:
+        node.kill()
+        node.wait()
+
+    def gone() -> bool:
+        try:
+            return "State:\tZ" in Path(f"/proc/{child}/status").read_text()  # a zombie
+        except FileNotFoundError:
+            return True
+
+    for _ in range(3000):
+        if gone():
+            break
+        threading.Event().wait(0.02)
+    assert gone()
 
 
 def observations_at(step: int, batch: int = 2) -> np.ndarray:

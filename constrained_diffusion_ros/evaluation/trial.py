@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import time
 from pathlib import Path
@@ -168,8 +169,14 @@ def run_trial(args: argparse.Namespace) -> dict:
             says so). Seen in CI: a recorder that matched the policy 0.2 s before a short trial
             ended kept none of the first five setpoints (their history came too late)."""
             text = recorder_log.read_text()
-            return all(f"{TOPICS[topic].resolved()}: 1 publisher(s) matched" in text
-                       for topic in ("setpoint", "pusher", "block_pose"))
+            return all(re.search(rf"{re.escape(TOPICS[topic].resolved())}: [1-9]\d* "
+                                 rf"publisher\(s\) matched", text) for topic in recorded_first)
+
+        # The zones too: seen in CI, a bag without the zone message (the recorder matched the
+        # zone publisher only after its latched history could still reach it).
+        recorded_first = ["setpoint", "pusher", "block_pose"]
+        if zone_topic is not None:
+            recorded_first.append("keepout_mask" if args.keepout_grid else "zones")
 
         spin_until(discovered, "the nodes to discover each other")
         spin_until(recorder_matched, "the recorder to match the publishers")

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 
@@ -20,7 +19,7 @@ from constrained_diffusion_ros.evaluation.rollout import rollout
 from constrained_diffusion_ros.paths import default_model_dir
 from constrained_diffusion_ros.planning.config import ConstraintConfig
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
-from constrained_diffusion_ros.policy.device import DEVICES
+from constrained_diffusion_ros.policy.device import add_compute_arguments, use_compute_arguments
 from constrained_diffusion_ros.policy.schedulers import SPACINGS
 from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
@@ -39,16 +38,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--timestep-spacing", choices=SPACINGS, default="leading",
                         help="which training timesteps a shorter schedule visits")
     parser.add_argument("--seed", type=int, default=0, help="seed of the sampling noise")
-    parser.add_argument("--device", default="cpu", help=f"where the network runs: {DEVICES}")
-    parser.add_argument("--threads", type=positive_int, default=os.cpu_count() or 1,
-                        help="torch threads (default: this machine's cores)")
+    add_compute_arguments(parser)
     parser.add_argument("--json", help="also write the figures to this JSON file")
     return parser
 
 
 def run(args: argparse.Namespace) -> int:
-    torch.set_num_threads(args.threads)
-    policy = load_policy(args.model, args.device)
+    policy = load_policy(args.model, use_compute_arguments(args))
     unconstrained = ConstraintConfig("none", sampler=args.sampler,
                                      denoising_steps=args.denoising_steps,
                                      timestep_spacing=args.timestep_spacing)

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -24,7 +23,7 @@ from constrained_diffusion_ros.evaluation.configurations import load_evaluated
 from constrained_diffusion_ros.evaluation.runner import CellResult, evaluate_configurations
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
-from constrained_diffusion_ros.policy.device import DEVICES
+from constrained_diffusion_ros.policy.device import add_compute_arguments, use_compute_arguments
 from constrained_diffusion_ros.policy.weights import load_policy
 
 DEFAULT_FIGURE = ("center_0.2", "r_g10_p_safe")
@@ -50,10 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--reuse", action="store_true",
                         help="keep the cells already in OUTPUT/results.json and run only the "
                              "missing ones (after adding a configuration or a scenario, say)")
-    parser.add_argument("--device", default="cpu", help=f"where the network runs: {DEVICES}")
-    parser.add_argument("--threads", type=positive_int, default=os.cpu_count() or 1,
-                        help="torch threads (default: this machine's cores; fewer if other "
-                             "work runs beside it)")
+    add_compute_arguments(parser)
     parser.add_argument("--config-dir", default=str(config_dir()),
                         help="directory with scenarios.yaml, configurations.yaml and "
                              "evaluation.yaml (the report's labels)")
@@ -105,8 +101,7 @@ def run(args: argparse.Namespace) -> int:
     chosen_of = {c.name: [s for s in scenarios if s.paper or c.scenarios == "all"]
                  for c in configs}
     drawn = figure_cell(args, {(s.name, c) for c, chosen in chosen_of.items() for s in chosen})
-    torch.set_num_threads(args.threads)
-    policy = load_policy(args.model, args.device)
+    policy = load_policy(args.model, use_compute_arguments(args))
     seeds = list(range(args.first_seed, args.first_seed + args.episodes))
     output = Path(args.output)
     try:

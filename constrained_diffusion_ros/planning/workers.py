@@ -2,10 +2,11 @@
 
 `BackgroundPlanner` plans in a thread of the node's process; `PlanningProcess` in a child
 process. Denoising runs hundreds of torch calls with Python between them, all under the
-interpreter's lock: in a thread it makes the control clock and the zone callbacks wait for that
-lock (on 2 cores, setpoint jitter p99 5 to 8 ms and zone reactions up to 40 ms). A child
-process has an interpreter of its own, so the node's threads never wait behind planning, as
-LeRobot's asynchronous inference keeps the policy in a server of its own. Both take jobs the
+interpreter's lock, which the control clock and the zone callbacks need too; a child process has
+an interpreter of its own, so the node's threads never wait behind planning, and a planner that
+crashes does not take the node with it, as LeRobot's asynchronous inference keeps the policy in
+a server of its own. (On the 2-core VM of the README the two gave the same live figures within
+its noise.) Both take jobs the
 same way: `submit` replaces a job not yet started (only the newest request matters), a result
 goes to `on_result` with its job, `reseed` applies before the next job, `shutdown` stops and
 joins (like tf2_ros's listener, each owns its thread).
@@ -33,6 +34,8 @@ import torch
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.sampling.hooks import CommittedPrefix
 from constrained_diffusion_ros.zones.area import RestrictedArea
+
+LOGGER = logging.getLogger(__name__)
 
 
 @dataclass
@@ -126,13 +129,10 @@ class BackgroundPlanner:
                 self._on_result(PlanResult(job, chunk, time.perf_counter() - began))
             except Exception as error:  # reported by the owner; the worker keeps serving
                 self.error, self.errors = error, self.errors + 1
-                logging.getLogger(__name__).exception("planning failed")
+                LOGGER.exception("planning failed")
             finally:
                 with self._wake:
                     self._busy = False
-
-
-LOGGER = logging.getLogger(__name__)
 
 
 def _send(connection: Connection, kind: str, payload: object) -> None:

@@ -39,7 +39,7 @@ def read_config(directory: str | Path) -> PolicyConfig:
         raise ValueError(f"{path} is not a valid policy config: {error}") from error
 
 
-def load_policy(directory: str | Path, device: str = "cpu") -> DiffusionPolicy:
+def load_policy(directory: str | Path, device: str | torch.device = "cpu") -> DiffusionPolicy:
     """Rebuilds the network from the JSON config and fills it, on `device` (device.py); a
     mismatch is a ValueError, found from the weights file's header and a network without
     storage (meta device) before anything is allocated."""

@@ -22,7 +22,11 @@ from tqdm import tqdm
 
 from constrained_diffusion_ros.cli import ArgumentParser, positive_int, run_command
 from constrained_diffusion_ros.policy.config import PolicyConfig
-from constrained_diffusion_ros.policy.device import DEVICES, resolve_device
+from constrained_diffusion_ros.policy.device import (
+    add_compute_arguments,
+    resolve_device,
+    use_compute_arguments,
+)
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.normalizer import MinMaxNormalizer
 from constrained_diffusion_ros.policy.weights import WEIGHTS_FILE, save_policy
@@ -118,7 +122,7 @@ def plot_losses(losses: list[float], path: Path, title: str) -> None:
 
 
 def train(args: argparse.Namespace) -> dict:
-    device = resolve_device(args.device)
+    device = use_compute_arguments(args)
     torch.manual_seed(args.seed)
     demos = load_demonstrations(args.dataset)
     base = PolicyConfig(down_dims=tuple(args.down_dims))
@@ -210,7 +214,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--overwrite", action="store_true",
                         help="replace a model already in --output (refused otherwise)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
-    parser.add_argument("--device", default="cpu", help=f"where the network trains: {DEVICES}")
+    add_compute_arguments(parser)
     return parser
 
 

@@ -4,11 +4,15 @@ it, exit code 2, and the traceback only when asked for with --debug."""
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Callable
-from typing import NoReturn
+from typing import TYPE_CHECKING, NoReturn
 
 from msg_schemas.text import one_line
+
+if TYPE_CHECKING:
+    import torch
 
 USAGE_ERROR = 2  # argparse's exit code for a bad argument; ours for any bad input
 
@@ -48,3 +52,22 @@ def run_command(run: Callable[[argparse.Namespace], int], args: argparse.Namespa
               f"unexpected {type(error).__name__}: {one_line(error)} (--debug shows where)"),
               file=sys.stderr)
         return USAGE_ERROR
+
+
+def add_compute_arguments(parser: argparse.ArgumentParser) -> None:
+    """--device and --threads, alike in every command that runs the network."""
+    parser.add_argument("--device", default="cpu",
+                        help="where the network runs: cpu, cuda or cuda:N")
+    parser.add_argument("--threads", type=positive_int, default=os.cpu_count() or 1,
+                        help="torch threads (default: this machine's cores; fewer if other "
+                             "work runs beside it)")
+
+
+def use_compute_arguments(args: argparse.Namespace) -> torch.device:
+    """Sets the torch threads asked for; the device, checked (ValueError in one line)."""
+    import torch  # here, so that commands which never run the network start without it
+
+    from constrained_diffusion_ros.policy.device import resolve_device
+
+    torch.set_num_threads(args.threads)
+    return resolve_device(args.device)

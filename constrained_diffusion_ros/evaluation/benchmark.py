@@ -14,12 +14,17 @@ import time
 
 import torch
 
-from constrained_diffusion_ros.cli import ArgumentParser, positive_int, run_command
+from constrained_diffusion_ros.cli import (
+    ArgumentParser,
+    add_compute_arguments,
+    positive_int,
+    run_command,
+    use_compute_arguments,
+)
 from constrained_diffusion_ros.evaluation.rollout import rollout
 from constrained_diffusion_ros.paths import default_model_dir
 from constrained_diffusion_ros.planning.config import ConstraintConfig
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
-from constrained_diffusion_ros.policy.device import add_compute_arguments, use_compute_arguments
 from constrained_diffusion_ros.policy.schedulers import SPACINGS
 from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT

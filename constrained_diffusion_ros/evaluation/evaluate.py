@@ -17,13 +17,18 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from constrained_diffusion_ros.cli import ArgumentParser, positive_int, run_command
+from constrained_diffusion_ros.cli import (
+    ArgumentParser,
+    add_compute_arguments,
+    positive_int,
+    run_command,
+    use_compute_arguments,
+)
 from constrained_diffusion_ros.evaluation import report
 from constrained_diffusion_ros.evaluation.configurations import load_evaluated
 from constrained_diffusion_ros.evaluation.runner import CellResult, evaluate_configurations
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
-from constrained_diffusion_ros.policy.device import add_compute_arguments, use_compute_arguments
 from constrained_diffusion_ros.policy.weights import load_policy
 
 DEFAULT_FIGURE = ("center_0.2", "r_g10_p_safe")

@@ -6,28 +6,9 @@ drawn on the CPU too, so a seed gives the same noise on every device.
 
 from __future__ import annotations
 
-import argparse
-import os
-
 import torch
 
-from constrained_diffusion_ros.cli import positive_int
-
 DEVICES = "cpu, cuda or cuda:N"
-
-
-def add_compute_arguments(parser: argparse.ArgumentParser) -> None:
-    """--device and --threads, alike in every command that runs the network."""
-    parser.add_argument("--device", default="cpu", help=f"where the network runs: {DEVICES}")
-    parser.add_argument("--threads", type=positive_int, default=os.cpu_count() or 1,
-                        help="torch threads (default: this machine's cores; fewer if other "
-                             "work runs beside it)")
-
-
-def use_compute_arguments(args: argparse.Namespace) -> torch.device:
-    """Sets the torch threads asked for; the device, checked (ValueError in one line)."""
-    torch.set_num_threads(args.threads)
-    return resolve_device(args.device)
 
 
 def resolve_device(name: str) -> torch.device:

@@ -20,13 +20,15 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
-from constrained_diffusion_ros.cli import ArgumentParser, positive_int, run_command
-from constrained_diffusion_ros.policy.config import PolicyConfig
-from constrained_diffusion_ros.policy.device import (
+from constrained_diffusion_ros.cli import (
+    ArgumentParser,
     add_compute_arguments,
-    resolve_device,
+    positive_int,
+    run_command,
     use_compute_arguments,
 )
+from constrained_diffusion_ros.policy.config import PolicyConfig
+from constrained_diffusion_ros.policy.device import resolve_device
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.normalizer import MinMaxNormalizer
 from constrained_diffusion_ros.policy.weights import WEIGHTS_FILE, save_policy

@@ -34,7 +34,7 @@ bench: $(STAMP)
 	$(BIN)/python scripts/bench_realtime.py  # idle, then with a load it starts itself
 
 # Table I's protocol (25 scenes) for every row, then our main rows on 100 scenes beside it.
-HUNDRED_SEED_ROWS ?= ddim10_none ddim10_r_g10_p ddim10_r_g10_p_safe
+HUNDRED_SEED_ROWS ?= none r_g10 ddim10_none ddim10_r_g10_p ddim10_r_g10_p_safe
 evaluation: $(STAMP)
 	$(BIN)/evaluate --output docs/evaluation
 	$(BIN)/evaluate --episodes 100 --scenarios paper --configs $(HUNDRED_SEED_ROWS) \

@@ -38,6 +38,9 @@ class ConstraintConfig:
     margin: float = 1.0  # clearance (px) left by projection and path repair
     inflate: bool = False  # grow zones by the pusher radius so its body stays out too
     path_repair: bool = False
+    repair_from: float = 1.0  # path repair after every update from this progress (0..1) on;
+    # 1: after the last only
+    guide_until: float = 1.0  # resampling and push only up to this progress (0..1)
     shield: bool = False  # keep the pusher's predicted path (its disc) out, setpoint by setpoint
     from_scratch: int = 0  # >0: no hooks; draw this many whole chunks, keep the first that fits
     candidates: int = 1  # >1: this many steered chunks per episode; keep the one the final
@@ -72,8 +75,9 @@ class ConstraintConfig:
         if self.timestep_spacing not in SPACINGS:
             raise ValueError(f"configuration {self.name!r}: timestep_spacing must be one of "
                              f"{', '.join(SPACINGS)}")
-        if not 0.0 <= self.eta <= 1.0:
-            raise ValueError(f"configuration {self.name!r}: eta must be in [0, 1]")
+        for name in ("eta", "repair_from", "guide_until"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"configuration {self.name!r}: {name} must be in [0, 1]")
 
     @property
     def constrains(self) -> bool:

@@ -29,6 +29,7 @@ from constrained_diffusion_ros.sampling.hooks import (
     OnRows,
     PathRepair,
     Resampling,
+    Until,
 )
 from constrained_diffusion_ros.sampling.sampler import DenoisingSampler, SampleHook
 from constrained_diffusion_ros.zones.area import RestrictedArea
@@ -92,15 +93,16 @@ class ConstrainedPlanner:
 
     def hooks(self, area: RestrictedArea, pusher: Tensor) -> list[SampleHook]:
         c, first = self.config, self.policy.config.first_executed
-        hooks: list[SampleHook] = []
+        guidance: list[SampleHook] = []
         if c.resample:
-            hooks.append(Resampling(area))
+            guidance.append(Resampling(area))
         if c.push > 0:
-            hooks.append(GradientPush(area, c.push))
+            guidance.append(GradientPush(area, c.push))
+        hooks = guidance if c.guide_until >= 1.0 else [Until(g, c.guide_until) for g in guidance]
         if c.project:
             hooks.append(FinalProjection(area, c.margin))
         if c.path_repair:
-            hooks.append(PathRepair(area, pusher, first, c.margin))
+            hooks.append(PathRepair(area, pusher, first, c.margin, c.repair_from))
         return hooks
 
     def plan(self, observations: Tensor, zones: RestrictedArea | None,

@@ -83,9 +83,11 @@ class PathRepair:
     start: Tensor  # (B, 2) pusher positions when the chunk is planned
     first_index: int = 1
     margin: float = 1.0
+    from_progress: float = 1.0  # < 1: also after the updates from this progress on, so the
+    # updates after a repair can adapt the rest of the chunk to it
 
     def __call__(self, sample: Tensor, step: DenoisingStep) -> Tensor:
-        if step.index != step.total - 1:
+        if step.index != step.total - 1 and step.progress < self.from_progress:
             return sample
         head, path = sample[:, : self.first_index], sample[:, self.first_index:]
         for _ in range(path.shape[1]):
@@ -103,6 +105,19 @@ class PathRepair:
             path = path.clone()
             path[rows, cols] = seg_start + keep[:, None] * (seg_end - seg_start)
         return torch.cat([head, path], dim=1)
+
+
+@dataclass
+class Until:
+    """Runs `hook` only while the loop's progress is at most `last`: guidance stopped for the
+    last updates, so they can bring the sample back toward what the policy learned (as ITPS
+    found helpful); the final projection and path repair still have the last word."""
+
+    hook: SampleHook
+    last: float
+
+    def __call__(self, sample: Tensor, step: DenoisingStep) -> Tensor:
+        return self.hook(sample, step) if step.progress <= self.last + 1e-9 else sample
 
 
 @dataclass

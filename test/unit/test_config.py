@@ -33,12 +33,11 @@ def test_an_unknown_configuration_key_is_refused_by_name(tmp_path: Path) -> None
 
 
 @pytest.mark.parametrize("entry", [{"push": -1.0}, {"from_scratch": 4, "resample": True},
-                                   {"sampler": "euler"}])
+                                   {"sampler": "euler"}, {"guide_until": 1.5},
+                                   {"repair_from": -0.1}])
 def test_inconsistent_configurations_are_refused(entry: dict) -> None:
     with pytest.raises(ValueError, match="'bad'"):
         ConstraintConfig("bad", **entry)
-
-
 
 
 def test_the_evaluation_labels_every_configuration_and_marks_the_papers_six() -> None:

@@ -13,6 +13,7 @@ from constrained_diffusion_ros.sampling.hooks import (
     GradientPush,
     PathRepair,
     Resampling,
+    Until,
 )
 from constrained_diffusion_ros.zones import ZoneSet, rectangle
 
@@ -124,6 +125,25 @@ def test_final_projection_leaves_no_waypoint_inside_or_closer_than_the_margin(
 def path_segments(start: torch.Tensor, path: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Segments start -> path[0] -> path[1] -> ... per episode."""
     return torch.cat([start[:, None], path[:, :-1]], dim=1), path
+
+
+def test_path_repair_from_a_progress_repairs_after_every_update_from_it_on() -> None:
+    zone = ZoneSet.from_polygons([rectangle(200, 200, 300, 300)])
+    start = torch.tensor([[100.0, 250.0]])
+    xs = torch.linspace(140.0, 460.0, 8)
+    sample = torch.stack([xs, torch.full_like(xs, 250.0)], dim=-1)[None]  # straight through
+    hook = PathRepair(zone, start, first_index=0, margin=1.0, from_progress=0.5)
+    assert torch.equal(hook(sample.clone(), make_step(1)), sample)  # progress 0.25: not yet
+    for index in (2, 3):  # progress 0.5 and 0.75: repaired already
+        out = hook(sample.clone(), make_step(index))
+        assert not zone.crosses(*path_segments(start, out)).any()
+
+
+def test_until_runs_its_hook_only_up_to_the_progress_given() -> None:
+    hook = Until(GradientPush(SQUARE, 10.0), last=0.5)
+    moved = [not torch.equal(hook(HAND_MADE.clone(), make_step(i)), HAND_MADE)
+             for i in range(5)]
+    assert moved == [True, True, True, False, False]
 
 
 def test_path_repair_pulls_a_crossing_path_back_before_the_zone() -> None:

@@ -97,6 +97,10 @@ class Condition:
     sent_periods: list[float] = field(default_factory=list)  # s, as published by the policy
     latencies: list[float] = field(default_factory=list)  # s, every trial
     reacted: list[float] = field(default_factory=list)  # s, trials whose held setpoint was unsafe
+    # s, zone published -> the policy sent the first safe setpoint (its own source timestamp,
+    # free of the client's receiving), in the trials where it changed its setpoint
+    reacted_sent: list[float] = field(default_factory=list)
+    in_node: list[float] = field(default_factory=list)  # s, the node's zone_to_setpoint_ms
     inside_after: int = 0
     overlap_steps: int = 0
     trials: int = 0
@@ -260,14 +264,15 @@ def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
     shape = shapely.Polygon(vertices)
     n_setpoints, n_pushers = len(client.setpoints), len(client.pushers)
     reactions = int(client.status.get("zone_reactions", 0))
-    published = time.monotonic()
+    published, published_wall = time.monotonic(), time.time()
     client.publish_zone(1000 + index, vertices)
     client.spin_for(args.watch)  # (the diagnostics come every 0.5 s: the reaction is in)
     after = client.setpoints[n_setpoints:]
     # The node reacted if it changed its held setpoint because of the zone (its own count);
     # else the setpoint it held when the zone came already respected it.
     reacted = int(client.status.get("zone_reactions", 0)) > reactions
-    first = next((t for t, p in after if respects(shape, p)), None)
+    first_index = next((i for i, (_, p) in enumerate(after) if respects(shape, p)), None)
+    first = None if first_index is None else after[first_index][0]
     if not reacted and respects(shape, held):
         first = published
     result.trials += 1
@@ -275,6 +280,9 @@ def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
     result.latencies.append(latency)
     if reacted:
         result.reacted.append(latency)
+        sent = client.published[n_setpoints + first_index] if first_index is not None else None
+        result.reacted_sent.append(float("inf") if sent is None else sent - published_wall)
+        result.in_node.append(float(client.status.get("zone_to_setpoint_ms", "nan")) / 1000)
     result.inside_after += sum(not respects(shape, p) for t, p in after
                                if first is not None and t > first)
     result.overlap_steps += sum(shape.distance(shapely.Point(*p)) < AGENT_RADIUS
@@ -364,6 +372,9 @@ def report(name: str, result: Condition, nominal: float) -> None:
     print(f"    zone published -> setpoint in force respects it: {ms(latency)}")
     print(f"    ... in the {len(reacted)} trials where the node changed its setpoint for the "
           f"zone: {ms(reacted)}")
+    print(f"    ... the same, to when the policy sent it (its source timestamp): "
+          f"{ms(np.array(result.reacted_sent))}; inside the node (zone callback -> sent): "
+          f"{ms(np.array(result.in_node))}")
     print(f"    setpoints within the pusher radius of the zone after that (0.5 px tolerance): "
           f"{result.inside_after}; steps with the pusher's disc in the zone: "
           f"{result.overlap_steps}")

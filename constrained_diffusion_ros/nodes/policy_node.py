@@ -260,6 +260,7 @@ class PolicyNode(Node):
         self.latest_pusher: np.ndarray | None = None
         self.zone_change_time: float | None = None
         self.replan_latency_ms = float("nan")
+        self.zone_to_setpoint_ms = float("nan")  # the last safe setpoint sent for a zone
         if self.zones.fixed is not None:
             self._publish_markers()  # viewers see the plug-in check from the start
         if self.mode == "realtime":
@@ -443,6 +444,7 @@ class PolicyNode(Node):
                   "plans": self.chunk_executor.stats.planner_calls,
                   "planning_ms": f"{planning_ms:.1f}",
                   "replan_latency_ms": f"{self.replan_latency_ms:.1f}",
+                  "zone_to_setpoint_ms": f"{self.zone_to_setpoint_ms:.1f}",
                   "zones": len(self.zones), **self.zone_counts}
         if self.controller is not None:
             stats = self.controller.stats
@@ -493,6 +495,7 @@ class PolicyNode(Node):
     def _on_zone(self, msg: PolygonInstanceStamped, info: dict) -> None:
         """Takes every zone message waiting, not just this one: a flood is applied as one
         batch (the last message per id) and the union is rebuilt once, when next read."""
+        received = time.monotonic()
         messages = [(msg, info)]
         for subscription in self.zone_subs:
             messages += self._take_waiting(subscription, ZONE_BATCH_MAX - len(messages))
@@ -514,7 +517,7 @@ class PolicyNode(Node):
         outcome = self.zones.apply(updates, self._now(), lifetime)
         self._count_zones(outcome, refused)
         if outcome.changed:
-            self._zones_changed()
+            self._zones_changed(received)
 
     def _on_keepout_mask(self, msg: OccupancyGrid) -> None:
         """A keep-out mask: its restricted cells become zones ("keepout/<k>", exact polygons)
@@ -588,15 +591,21 @@ class PolicyNode(Node):
             self.get_logger().warning(f"zone {zone_id} refused, zones in force kept: "
                                       f"{one_line(reason)}")
 
-    def _zones_changed(self) -> None:
-        """In realtime the held setpoint is checked now and a safe one published at once."""
+    def _zones_changed(self, received: float | None = None) -> None:
+        """In realtime the held setpoint is checked now and a safe one published at once
+        (how long after the zone callback began: `zone_to_setpoint_ms` in the status)."""
         self.zone_change_time = time.monotonic()
+        received = self.zone_change_time if received is None else received
         self.no_free_space = self._no_free_space()
         if self.controller is None:
             self._publish_markers()
             return
         self._markers_due = True
-        self.controller.zones_changed(lambda safe: self._hold(safe, send_now=True))
+        def send(safe: np.ndarray) -> None:
+            self._hold(safe, send_now=True)
+            self.zone_to_setpoint_ms = 1000 * (time.monotonic() - received)
+
+        self.controller.zones_changed(send)
 
     def _no_free_space(self) -> bool:
         """No setpoint is safe (the grown zones cover the workspace): the pusher is held where

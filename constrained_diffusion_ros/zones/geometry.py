@@ -120,26 +120,42 @@ def _cross(u: Tensor, v: Tensor) -> Tensor:
     return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
 
 
-def _ring_edges(ring: np.ndarray) -> np.ndarray:
-    """Edges of a closed ring with the area on their left, as (E, 6, 2) rows: start, direction,
+def _ring_edges(rings: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Edges of closed rings with the area on their left, as (E, 6, 2) rows: start, direction,
     outward unit normal, the clearance step at the start and at the end vertex, and the
-    direction of the previous (incoming) edge.
+    direction of the previous (incoming) edge; and the ring of each edge (E,). All rings at
+    once: neighbours are found by index within each ring.
 
     The clearance step at a vertex is the direction (scaled) in which moving c from the vertex
     gives clearance c: the exterior bisector, lengthened by 1 / cos(half-angle) at reflex
     vertices, whose narrow exterior wedge only widens away from the tip.
     """
-    v = ring[:-1]
-    v = v[np.any(v != np.roll(v, 1, axis=0), axis=1)]
-    d = np.roll(v, -1, axis=0) - v
+    if not rings:
+        return np.zeros((0, 6, 2)), np.zeros(0, dtype=int)
+    v = np.concatenate([r[:-1] for r in rings])
+    ring = np.repeat(np.arange(len(rings)), [len(r) - 1 for r in rings])
+    before, _ = _neighbours(ring)
+    keep = np.any(v != v[before], axis=1)  # repeated vertices make no edge
+    v, ring = v[keep], ring[keep]
+    before, after = _neighbours(ring)
+    d = v[after] - v
     normal = np.stack([d[:, 1], -d[:, 0]], axis=1) / np.linalg.norm(d, axis=1, keepdims=True)
-    bisector = normal + np.roll(normal, 1, axis=0)  # outgoing + incoming edge at each start
+    bisector = normal + normal[before]  # outgoing + incoming edge at each start
     bisector /= np.maximum(np.linalg.norm(bisector, axis=1, keepdims=True), 1e-12)
-    d_in = np.roll(d, 1, axis=0)
+    d_in = d[before]
     reflex = d_in[:, 0] * d[:, 1] - d_in[:, 1] * d[:, 0] < 0  # right turn: a notch in the area
     cos = np.maximum((bisector * normal).sum(axis=1, keepdims=True), 1e-9)
     step = np.where(reflex[:, None], bisector / cos, bisector)
-    return np.stack([v, d, normal, step, np.roll(step, -1, axis=0), d_in], axis=1)
+    return np.stack([v, d, normal, step, step[after], d_in], axis=1), ring
+
+
+def _neighbours(ring: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For vertices listed ring by ring (`ring`: each one's ring, ascending), the index of the
+    previous and of the next vertex of the same ring, cyclically."""
+    counts = np.bincount(ring)
+    first = np.concatenate([[0], np.cumsum(counts)[:-1]])[ring]
+    size, local = counts[ring], np.arange(len(ring)) - first
+    return first + (local - 1) % size, first + (local + 1) % size
 
 
 class ZoneSet(RestrictedArea):
@@ -161,10 +177,8 @@ class ZoneSet(RestrictedArea):
         self._geometry = shapely.orient_polygons(union, exterior_cw=False)
         self._parts = [p for p in shapely.get_parts(self._geometry) if not p.is_empty]
         rings = [np.asarray(r.coords) for p in self._parts for r in (p.exterior, *p.interiors)]
-        tables = [_ring_edges(r) for r in rings]
-        self._table = np.concatenate(tables) if tables else np.zeros((0, 6, 2))
         # Each edge's ring, and each ring's bounds: what `near` keeps or drops.
-        self._ring_of_edge = np.repeat(np.arange(len(tables)), [len(t) for t in tables])
+        self._table, self._ring_of_edge = _ring_edges(rings)
         self._ring_bounds = np.array([[*r.min(axis=0), *r.max(axis=0)] for r in rings]
                                      ).reshape(-1, 4)
         self._scale = max(1.0, float(np.abs(self._table[:, 0]).max(initial=0.0)))

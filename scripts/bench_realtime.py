@@ -55,6 +55,7 @@ from sim_bridge import AGENT_RADIUS, CONTROL_HZ  # noqa: E402
 
 FIRST_SEED = 100000
 MAX_ATTEMPTS = 4  # scenes tried per trial asked for, at most
+LOOKS = 4  # looks for room for the zone in a scene, 0.5 s apart, before it is skipped
 FLOOD_IDS = 30  # ids cycled by the flood (the node's cap is 32)
 TOLERANCE = 0.5  # px: a setpoint this close to the grown zone's boundary respects it
 
@@ -254,11 +255,15 @@ def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
                       and client.setpoints and client.setpoints[-1][0] > begin,
                       60.0, "a plan after the reset")
     client.spin_for(args.warmup)
-    held = client.setpoints[-1][1]
-    (_, step_before, before), (_, step, pusher) = client.pushers[-2:]
-    speed = np.linalg.norm(pusher - before) * CONTROL_HZ / max(1, step - step_before)
-    vertices = zone_in_path(client.plan, held, pusher, speed, args.zone_size)
-    if vertices is None:
+    for _ in range(LOOKS):  # the pusher may be held or near the plan's end: look again
+        held = client.setpoints[-1][1]
+        (_, step_before, before), (_, step, pusher) = client.pushers[-2:]
+        speed = np.linalg.norm(pusher - before) * CONTROL_HZ / max(1, step - step_before)
+        vertices = zone_in_path(client.plan, held, pusher, speed, args.zone_size)
+        if vertices is not None:
+            break
+        client.spin_for(0.5)
+    else:
         result.skipped += 1
         return
     shape = shapely.Polygon(vertices)

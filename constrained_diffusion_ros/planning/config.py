@@ -41,6 +41,8 @@ class ConstraintConfig:
     repair_from: float = 1.0  # path repair after every update from this progress (0..1) on;
     # 1: after the last only
     guide_until: float = 1.0  # resampling and push only up to this progress (0..1)
+    margin_shrink: float = 0.0  # px: resampling and push see the zones grown by this much
+    # more at the first update, shrinking to nothing at the last
     shield: bool = False  # keep the pusher's predicted path (its disc) out, setpoint by setpoint
     from_scratch: int = 0  # >0: no hooks; draw this many whole chunks, keep the first that fits
     candidates: int = 1  # >1: this many steered chunks per episode; keep the one the final
@@ -65,9 +67,9 @@ class ConstraintConfig:
         if self.from_scratch and self.candidates > 1:
             raise ValueError(f"configuration {self.name!r}: from_scratch draws its own "
                              f"candidates")
-        if self.push < 0 or self.margin < 0 or self.from_scratch < 0:
-            raise ValueError(f"configuration {self.name!r}: push, margin and from_scratch "
-                             "must be non-negative")
+        if min(self.push, self.margin, self.from_scratch, self.margin_shrink) < 0:
+            raise ValueError(f"configuration {self.name!r}: push, margin, margin_shrink and "
+                             "from_scratch must be non-negative")
         if self.from_scratch and (self.resample or self.push or self.path_repair):
             raise ValueError(f"configuration {self.name!r}: from_scratch replaces the hooks")
         if self.sampler not in ("ddpm", "ddim"):

@@ -29,6 +29,7 @@ from constrained_diffusion_ros.sampling.hooks import (
     OnRows,
     PathRepair,
     Resampling,
+    ShrinkingMargin,
     Until,
 )
 from constrained_diffusion_ros.sampling.sampler import DenoisingSampler, SampleHook
@@ -98,6 +99,8 @@ class ConstrainedPlanner:
             guidance.append(Resampling(area))
         if c.push > 0:
             guidance.append(GradientPush(area, c.push))
+        if c.margin_shrink > 0:
+            guidance = [ShrinkingMargin(g, c.margin_shrink) for g in guidance]
         hooks = guidance if c.guide_until >= 1.0 else [Until(g, c.guide_until) for g in guidance]
         if c.project:
             hooks.append(FinalProjection(area, c.margin))

@@ -10,7 +10,7 @@ workspace pixels, batched over episodes and waypoints; the constraint hooks cons
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -118,6 +118,22 @@ class Until:
 
     def __call__(self, sample: Tensor, step: DenoisingStep) -> Tensor:
         return self.hook(sample, step) if step.progress <= self.last + 1e-9 else sample
+
+
+@dataclass
+class ShrinkingMargin:
+    """Runs a guidance hook (one with an `area`) on its area grown by `extra` px at the first
+    update, the growth shrinking linearly to none at the last: noisy early samples are kept
+    further out, the final ones only as far as needed. Whole pixels, so a loop builds at most
+    `extra` + 1 derived areas, each cached by the area."""
+
+    hook: Resampling | GradientPush
+    extra: float
+
+    def __call__(self, sample: Tensor, step: DenoisingStep) -> Tensor:
+        grow = round(self.extra * (1.0 - step.progress))
+        area = self.hook.area.inflate(float(grow)) if grow > 0 else self.hook.area
+        return replace(self.hook, area=area)(sample, step)
 
 
 @dataclass

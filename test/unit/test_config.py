@@ -34,7 +34,7 @@ def test_an_unknown_configuration_key_is_refused_by_name(tmp_path: Path) -> None
 
 @pytest.mark.parametrize("entry", [{"push": -1.0}, {"from_scratch": 4, "resample": True},
                                    {"sampler": "euler"}, {"guide_until": 1.5},
-                                   {"repair_from": -0.1}])
+                                   {"repair_from": -0.1}, {"margin_shrink": -1.0}])
 def test_inconsistent_configurations_are_refused(entry: dict) -> None:
     with pytest.raises(ValueError, match="'bad'"):
         ConstraintConfig("bad", **entry)

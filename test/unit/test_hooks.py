@@ -13,6 +13,7 @@ from constrained_diffusion_ros.sampling.hooks import (
     GradientPush,
     PathRepair,
     Resampling,
+    ShrinkingMargin,
     Until,
 )
 from constrained_diffusion_ros.zones import ZoneSet, rectangle
@@ -137,6 +138,15 @@ def test_path_repair_from_a_progress_repairs_after_every_update_from_it_on() -> 
     for index in (2, 3):  # progress 0.5 and 0.75: repaired already
         out = hook(sample.clone(), make_step(index))
         assert not zone.crosses(*path_segments(start, out)).any()
+
+
+def test_shrinking_margin_guides_on_a_grown_area_first_and_the_area_itself_last() -> None:
+    near = torch.tensor([[[95.0, 150.0], [300.0, 300.0]]])  # 5 px left of SQUARE; far away
+    hook = ShrinkingMargin(GradientPush(SQUARE, 1.0), extra=10.0)
+    first = hook(near.clone(), make_step(0))
+    assert first[0, 0, 0] < 95.0 and torch.equal(first[0, 1], near[0, 1])  # pushed further out
+    assert torch.equal(hook(near.clone(), make_step(4)), near)  # last update: SQUARE itself
+    assert hook.hook.area is SQUARE  # the hook it wraps is left as it was
 
 
 def test_until_runs_its_hook_only_up_to_the_progress_given() -> None:

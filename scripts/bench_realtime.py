@@ -44,6 +44,7 @@ from constrained_diffusion_ros.evaluation.launcher import (  # noqa: E402
     random_domain_id,
 )
 from constrained_diffusion_ros.paths import default_model_dir  # noqa: E402
+from constrained_diffusion_ros.pusht import PUSHT_ROBOT  # noqa: E402
 from msg_schemas import NAMESPACE, SERVICES, TOPICS, qos_profile  # noqa: E402
 from msg_schemas.conversions import (  # noqa: E402
     path_of,
@@ -57,6 +58,12 @@ FIRST_SEED = 100000
 MAX_ATTEMPTS = 4  # scenes tried per trial asked for, at most
 LOOKS = 4  # looks for room for the zone in a scene, 0.5 s apart, before it is skipped
 FLOOD_IDS = 30  # ids cycled by the flood (the node's cap is 32)
+# The pusher's PD law over one control step: per physics substep, its (position, velocity) as
+# weights of (position, velocity, setpoint) at the step's start, per axis.
+ONE_STEP = PUSHT_ROBOT.transition(PUSHT_ROBOT.substeps)
+# Both the distance a step covers and the velocity it ends with scale with setpoint - position.
+VELOCITY_PER_PX_MOVED = ONE_STEP[-1, 1, 2] / ONE_STEP[-1, 0, 2]
+CARRY = float(np.abs(ONE_STEP[:, 0, 1]).max())  # px carried on per px/s of velocity
 TOLERANCE = 0.5  # px: a setpoint this close to the grown zone's boundary respects it
 
 
@@ -216,19 +223,24 @@ def square(centre: np.ndarray, side: float) -> np.ndarray:
     return centre + np.array([[-half, -half], [half, -half], [half, half], [-half, half]])
 
 
-def zone_in_path(plan: np.ndarray, held: np.ndarray, pusher: np.ndarray, speed: float,
+def zone_in_path(plan: np.ndarray, held: np.ndarray, pusher: np.ndarray, moved: np.ndarray,
                  side: float) -> np.ndarray | None:
     """A square on the waypoints about to execute, as close to the held setpoint as can be
-    with the pusher still able to stop outside it: its disc clear by 2 px plus what it covers
-    in one more control step at its speed (the simulator's step in progress) plus what it
-    overshoots braking from that speed under its PD law (3 px per 100 px/s). An overlap
+    with the pusher still able to stop outside it even if the node's answer comes one control
+    step late: its disc clear by 2 px of the path it takes in one more step toward the held
+    setpoint (its PD law, from its position and the velocity its last step `moved` implies)
+    plus what it then carries on by its velocity before a new setpoint can stop it. An overlap
     after that is the filter's fault."""
-    clearance = AGENT_RADIUS + 2 + speed / CONTROL_HZ + 0.03 * speed
+    state = np.stack([pusher, VELOCITY_PER_PX_MOVED * moved, held])  # (p, v, u) per axis
+    path = ONE_STEP[:, 0] @ state  # (substeps, 2)
+    carried_on = CARRY * np.linalg.norm(ONE_STEP[-1, 1] @ state)
+    swept = shapely.LineString(np.vstack([pusher, path]))
+    clearance = AGENT_RADIUS + 2 + carried_on
     ahead = np.argmin(np.linalg.norm(plan - held, axis=1))
     for index in range(ahead, len(plan)):
         centre = np.clip(plan[index], side / 2 + 2, 510 - side / 2)
         shape = shapely.Polygon(square(centre, side))
-        if shape.distance(shapely.Point(*pusher)) > clearance:
+        if shape.distance(swept) > clearance:
             return square(centre, side)
     return None
 
@@ -258,8 +270,8 @@ def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
     for _ in range(LOOKS):  # the pusher may be held or near the plan's end: look again
         held = client.setpoints[-1][1]
         (_, step_before, before), (_, step, pusher) = client.pushers[-2:]
-        speed = np.linalg.norm(pusher - before) * CONTROL_HZ / max(1, step - step_before)
-        vertices = zone_in_path(client.plan, held, pusher, speed, args.zone_size)
+        moved = (pusher - before) / max(1, step - step_before)
+        vertices = zone_in_path(client.plan, held, pusher, moved, args.zone_size)
         if vertices is not None:
             break
         client.spin_for(0.5)

@@ -261,6 +261,7 @@ class PolicyNode(Node):
         self.zone_change_time: float | None = None
         self.replan_latency_ms = float("nan")
         self.zone_to_setpoint_ms = float("nan")  # the last safe setpoint sent for a zone
+        self._sent_at = float("nan")  # time.monotonic() of the last setpoint sent out of turn
         if self.zones.fixed is not None:
             self._publish_markers()  # viewers see the plug-in check from the start
         if self.mode == "realtime":
@@ -402,6 +403,7 @@ class PolicyNode(Node):
             self._held = message
             if send_now:
                 self.setpoint_pub.publish(message)
+                self._sent_at = time.monotonic()
         self._count_violation(setpoint)
 
     def _on_markers_timer(self) -> None:
@@ -603,7 +605,7 @@ class PolicyNode(Node):
         self._markers_due = True
         def send(safe: np.ndarray) -> None:
             self._hold(safe, send_now=True)
-            self.zone_to_setpoint_ms = 1000 * (time.monotonic() - received)
+            self.zone_to_setpoint_ms = 1000 * (self._sent_at - received)
 
         self.controller.zones_changed(send)
 

@@ -94,6 +94,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--startup-timeout", type=float, default=90.0)
     parser.add_argument("--planning-process", choices=["true", "false"], default="true",
                         help="the policy node's planning_process parameter (false: a thread)")
+    parser.add_argument("--executor-priority", type=int, default=None,
+                        help="the policy node's executor_priority (0: normal scheduling; "
+                             "default: the node's)")
     return parser
 
 
@@ -422,9 +425,11 @@ def run_condition(args: argparse.Namespace, loaded: bool) -> None:
             try:
                 children.start("sim_node", seed=FIRST_SEED, mode="realtime",
                                rate_hz=args.rate_hz, autostart=False)
+                extra = {} if args.executor_priority is None else {
+                    "executor_priority": args.executor_priority}
                 children.start("policy_node", model=args.model, configuration=configuration,
                                mode="realtime", rate_hz=args.rate_hz,
-                               planning_process=args.planning_process == "true")
+                               planning_process=args.planning_process == "true", **extra)
                 client.spin_until(client.discovered, args.startup_timeout,
                                   "the nodes to discover each other")
                 result = Condition()
@@ -441,7 +446,7 @@ def run_condition(args: argparse.Namespace, loaded: bool) -> None:
                       f"{100 * steal / max(total, 1):.1f}%")
                 print("    node: " + ", ".join(f"{key} {client.status.get(key, '?')}" for key in (
                     "planning_ms", "plans", "plans_dropped", "held_steps", "ticks_missed",
-                    "tick_late_p99_ms", "clock_realtime")))
+                    "tick_late_p99_ms", "clock_realtime", "executor_realtime")))
                 if index == 0 and args.flood_hz > 0:
                     flood(client, args)
             finally:

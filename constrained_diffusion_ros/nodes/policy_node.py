@@ -45,7 +45,12 @@ from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.planning.config import load_configurations
 from constrained_diffusion_ros.planning.executor import ChunkExecutor
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
-from constrained_diffusion_ros.planning.realtime import ControlClock, RealtimeController
+from constrained_diffusion_ros.planning.realtime import (
+    EXECUTOR_PRIORITY,
+    ControlClock,
+    RealtimeController,
+    request_fifo,
+)
 from constrained_diffusion_ros.planning.robot import RobotModel
 from constrained_diffusion_ros.policy.device import DEVICES
 from constrained_diffusion_ros.policy.weights import load_policy
@@ -105,6 +110,9 @@ PARAMETERS = (
           "starts; -1: from the measured planning time", read_only=True, low=-1),
     Param("prefix_soft", 4, "realtime: waypoints after the committed ones drawn toward the "
           "chunk in force; -1: no inpainting", read_only=True, low=-1),
+    Param("executor_priority", EXECUTOR_PRIORITY, "realtime: SCHED_FIFO priority of the "
+          "executor thread, which answers zones and observations (the clock has 50); 0: normal "
+          "scheduling", read_only=True, low=0, high=98),
     Param("torch_threads", 1, "torch threads of the planner (1 is best on 2 cores; about "
           "half the cores on bigger machines)", read_only=True, low=1, high=256),
     Param("device", "cpu", f"where the network runs: {DEVICES} (the zones stay on the CPU)",
@@ -248,6 +256,8 @@ class PolicyNode(Node):
                     "rtprio in /etc/security/limits.conf); ticks may be late on a busy machine")
             self.create_timer(1.0 / self.rate_hz, self._on_markers_timer)
             self.create_timer(STATUS_PERIOD_S, self._on_status_timer)
+        self.executor_priority = values["executor_priority"]
+        self.executor_realtime: bool | None = None  # asked for on the executor's own thread
 
         self.keypoints: dict[float, np.ndarray] = {}
         self.pushers: dict[float, np.ndarray] = {}
@@ -419,6 +429,11 @@ class PolicyNode(Node):
             self._after_plan(chunk)
 
     def _on_status_timer(self) -> None:
+        if self.executor_realtime is None:
+            # On the thread that runs the callbacks: with FIFO priority it answers a zone
+            # without waiting for other processes' time slices (the planning process, started
+            # before, keeps normal scheduling).
+            self.executor_realtime = request_fifo(self.executor_priority)
         self._publish_status(self.controller.stats.last_plan_ms)
 
     def _publish_setpoint(self, setpoint: np.ndarray, stamp_msg) -> None:
@@ -457,6 +472,7 @@ class PolicyNode(Node):
                           ticks_missed=self.clock.missed,
                           tick_late_p99_ms=f"{1000 * self.clock.late_p99():.1f}",
                           clock_realtime=self.clock.realtime,
+                          executor_realtime=self.executor_realtime,
                           planning_errors=self.controller.worker.errors,
                           planning_error=one_line(self.controller.worker.error or ""))
         values["zone_ids"] = ",".join(str(i) for i in self.zones.ids)

@@ -12,7 +12,6 @@ handover does not jump. The policy node runs this with a `PlanningProcess` (work
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
 import threading
@@ -127,6 +126,23 @@ def committed_prefix(queue: ActionQueue, rows: np.ndarray, step: int, delay: int
 
 
 CLOCK_PRIORITY = 50  # SCHED_FIFO priority of the control clock where allowed (ros2_control's)
+EXECUTOR_PRIORITY = 40  # the node's executor thread, which reacts to zones: below the clock
+
+
+def request_fifo(priority: int) -> bool:
+    """SCHED_FIFO at `priority` for the calling thread, as ros2_control's controller manager
+    asks for its loop, if the system allows it (root, CAP_SYS_NICE or an rtprio limit): the
+    thread then preempts other processes' work at once. Processes it starts later get normal
+    scheduling back (reset on fork). Whether it was granted."""
+    if priority <= 0 or not hasattr(os, "sched_setscheduler"):
+        return False
+    try:
+        os.sched_setscheduler(threading.get_native_id(),
+                              os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0),
+                              os.sched_param(priority))
+    except OSError:
+        return False
+    return True
 LATENESS_WINDOW = 100  # ticks over which the clock's lateness is kept for diagnostics
 
 
@@ -161,13 +177,7 @@ class ControlClock:
         self._thread.join(timeout)
 
     def _run(self) -> None:
-        if self._priority > 0 and hasattr(os, "sched_setscheduler"):
-            # As ros2_control's controller manager: FIFO scheduling if the system allows it
-            # (root, CAP_SYS_NICE or an rtprio limit), so the tick preempts other work at once.
-            with contextlib.suppress(OSError):
-                os.sched_setscheduler(threading.get_native_id(), os.SCHED_FIFO,
-                                      os.sched_param(self._priority))
-                self.realtime = True
+        self.realtime = request_fifo(self._priority)
         self._started.set()
         deadline = time.monotonic() + self.period
         while not self._stop.wait(max(0.0, deadline - time.monotonic())):

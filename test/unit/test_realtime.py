@@ -23,6 +23,7 @@ from constrained_diffusion_ros.planning.realtime import (
     ControlClock,
     RealtimeController,
     committed_prefix,
+    request_fifo,
 )
 from constrained_diffusion_ros.planning.workers import (
     BackgroundPlanner,
@@ -350,6 +351,27 @@ def test_a_new_configuration_drops_the_plan_in_flight(tiny_policy: DiffusionPoli
         assert (stats.plans_asked, stats.plans_dropped, stats.plans_installed) == (2, 1, 1)
     finally:
         controller.shutdown()
+
+
+def test_fifo_priority_is_for_the_asking_thread_only_and_not_for_processes_it_starts() -> None:
+    assert not request_fifo(0)
+    seen: dict[str, object] = {}
+
+    def ask() -> None:
+        seen["granted"] = request_fifo(10)
+        seen["policy"] = os.sched_getscheduler(0)
+        child = "import os; print(os.sched_getscheduler(0))"
+        seen["child"] = int(subprocess.run([sys.executable, "-c", child], capture_output=True,
+                                           text=True, check=True).stdout)
+
+    thread = threading.Thread(target=ask)
+    thread.start()
+    thread.join()
+    if not seen["granted"]:
+        pytest.skip("SCHED_FIFO is not allowed here")
+    assert seen["policy"] & ~getattr(os, "SCHED_RESET_ON_FORK", 0) == os.SCHED_FIFO
+    assert seen["child"] == os.SCHED_OTHER  # reset on fork: a planning process starts normal
+    assert os.sched_getscheduler(0) == os.SCHED_OTHER  # the test's own thread is untouched
 
 
 def test_the_control_clock_ticks_on_its_own_thread_and_outlives_a_failing_tick() -> None:

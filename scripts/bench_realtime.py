@@ -114,6 +114,7 @@ class Condition:
     in_node: list[float] = field(default_factory=list)  # s, the node's zone_to_setpoint_ms
     inside_after: int = 0
     overlap_steps: int = 0
+    overlap_px: float = 0.0  # the deepest overlap of the disc
     trials: int = 0
     skipped: int = 0  # no place for a zone the disc was outside of
 
@@ -305,8 +306,10 @@ def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
         result.in_node.append(float(client.status.get("zone_to_setpoint_ms", "nan")) / 1000)
     result.inside_after += sum(not respects(shape, p) for t, p in after
                                if first is not None and t > first)
-    result.overlap_steps += sum(shape.distance(shapely.Point(*p)) < AGENT_RADIUS
-                                for _, _, p in client.pushers[n_pushers:])
+    depths = [AGENT_RADIUS - shape.distance(shapely.Point(*p))
+              for _, _, p in client.pushers[n_pushers:]]
+    result.overlap_steps += sum(depth > 0 for depth in depths)
+    result.overlap_px = max([result.overlap_px, *depths])
     settled = max(published + 0.3, (first or published) + 1.0 / args.rate_hz)
     for start, stop in ((begin + 0.5, published), (settled, time.monotonic())):
         received, sent = periods_between(client, start, stop)
@@ -397,7 +400,8 @@ def report(name: str, result: Condition, nominal: float) -> None:
           f"{ms(np.array(result.in_node))}")
     print(f"    setpoints within the pusher radius of the zone after that (0.5 px tolerance): "
           f"{result.inside_after}; steps with the pusher's disc in the zone: "
-          f"{result.overlap_steps}")
+          f"{result.overlap_steps}" + (f" (deepest {result.overlap_px:.2f} px)"
+                                       if result.overlap_steps else ""))
 
 
 def cpu_times() -> np.ndarray:

@@ -25,6 +25,7 @@ FRACTIONS = (0.75, 0.5, 0.25, 0.0)  # after the whole way (1.0) was refused
 # Control steps between two observations over which the velocity is still estimated; after a
 # longer gap the pusher has come to rest at its setpoint for all a shield can tell.
 MAX_GAP_STEPS = 10
+SENT_KEPT = 8  # setpoints remembered per observation (a real-time node may send several)
 
 
 class PusherShield:
@@ -44,8 +45,9 @@ class PusherShield:
         self.reset()
 
     def reset(self) -> None:
-        # step, position, setpoint sent, velocity estimated at that step
-        self.last: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None
+        # step, position, the setpoints sent since that observation (latest last), velocity
+        # estimated at that step
+        self.last: tuple[int, np.ndarray, list[np.ndarray], np.ndarray] | None = None
         self.corrected = 0  # setpoints changed since the reset
 
     def estimate(self, position: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray]:
@@ -55,20 +57,28 @@ class PusherShield:
         them, over the actual number of control steps between them (the PD law is linear: per
         axis one equation, one unknown, the earlier velocity). A second call for the same
         observation (a real-time controller ticking again before the next observation) reuses
-        that estimate and holds the setpoint sent last. Without a usable earlier observation (a
-        new episode: the simulator resets with the pusher at rest) the pusher is taken at rest,
-        holding its position."""
+        that estimate and holds the setpoint sent last. Which setpoint a robot executed is not
+        always the last one sent: a real-time node that sends again (a zone arrived) may do so
+        after the robot's tick. Over one step each setpoint sent for the last observation is
+        tried, and the one whose implied earlier velocity agrees with the velocity estimated
+        then is taken (a wrong one is off by about 10 px/s per px of setpoint). Without a usable
+        earlier observation (a new episode: the simulator resets with the pusher at rest) the
+        pusher is taken at rest, holding its position."""
         if self.last is None or len(self.last[1]) != len(position):
             return np.zeros_like(position), position
-        last_step, last_position, last_setpoint, last_velocity = self.last
+        last_step, last_position, sent, last_velocity = self.last
         gap = step - last_step
         if gap == 0:
-            return last_velocity, last_setpoint
+            return last_velocity, sent[-1]
         if not 0 < gap <= len(self.control_steps):
             return np.zeros_like(position), position
         (p_p, p_v, p_u), (v_p, v_v, v_u) = self.control_steps[gap - 1]
-        before = (position - p_p * last_position - p_u * last_setpoint) / p_v
-        return v_p * last_position + v_v * before + v_u * last_setpoint, last_setpoint
+        executed = np.stack(sent if gap == 1 else sent[-1:])  # (K, B, 2) candidates
+        before = (position - p_p * last_position - p_u * executed) / p_v
+        best = np.linalg.norm(before - last_velocity, axis=-1).argmin(axis=0)  # (B,)
+        rows = np.arange(len(position))
+        before, executed = before[best, rows], executed[best, rows]
+        return v_p * last_position + v_v * before + v_u * executed, sent[-1]
 
     def __call__(self, area: RestrictedArea | None, position: np.ndarray, setpoint: np.ndarray,
                  step: int) -> np.ndarray:
@@ -78,7 +88,7 @@ class PusherShield:
         position, setpoint = np.asarray(position, float), np.asarray(setpoint, float)
         velocity, held = self.estimate(position, step)
         if area is None:
-            self.last = (step, position, setpoint, velocity)
+            self._remember(step, position, setpoint, velocity)
             return setpoint
         p, v = torch.from_numpy(position), torch.from_numpy(velocity)
         start, goal = torch.from_numpy(held), torch.from_numpy(setpoint)
@@ -93,8 +103,17 @@ class PusherShield:
                                         goal[near])
         result = chosen.numpy()
         self.corrected += int((chosen != goal).any(dim=-1).sum())
-        self.last = (step, position, result, velocity)
+        self._remember(step, position, result, velocity)
         return result
+
+    def _remember(self, step: int, position: np.ndarray, setpoint: np.ndarray,
+                  velocity: np.ndarray) -> None:
+        """The observation and the setpoint sent for it, after those already sent for it."""
+        sent = [setpoint]
+        if self.last is not None and self.last[0] == step and \
+                self.last[2][-1].shape == setpoint.shape:
+            sent = [*self.last[2][-(SENT_KEPT - 1):], setpoint]
+        self.last = (step, position, sent, velocity)
 
     def _safe(self, area: RestrictedArea, p: Tensor, v: Tensor, candidates: Tensor) -> Tensor:
         """(N, F) whether holding candidate (N, F, 2) keeps a pusher at p moving at v clear of

@@ -70,7 +70,7 @@ def test_the_velocity_is_estimated_over_the_steps_that_actually_passed(gap: int)
     (p_p, p_v, p_u), (v_p, v_v, v_u) = robot.transition(gap * robot.substeps)[-1]
     later = p_p * position + p_v * velocity + p_u * setpoint
     truth = v_p * position + v_v * velocity + v_u * setpoint
-    shield.last = (4, position, setpoint, np.zeros_like(position))
+    shield.last = (4, position, [setpoint], np.zeros_like(position))
     estimated, held = shield.estimate(later, 4 + gap)
     np.testing.assert_allclose(estimated, truth, rtol=1e-9)
     np.testing.assert_array_equal(held, setpoint)
@@ -78,6 +78,29 @@ def test_the_velocity_is_estimated_over_the_steps_that_actually_passed(gap: int)
     again, held = shield.estimate(later, 4 + gap)  # the same observation, a second tick
     np.testing.assert_allclose(again, truth, rtol=1e-9)
     np.testing.assert_array_equal(held, setpoint + 5)
+
+
+@pytest.mark.parametrize("executed", ["held", "sent after it"])
+def test_the_setpoint_the_robot_executed_is_told_from_those_sent_for_one_observation(
+        executed: str) -> None:
+    """A real-time node sends the held setpoint, then another (a zone came); the robot's tick
+    may have come before the second. The velocity must be that of what it executed."""
+    robot, shield = PUSHT_ROBOT, PusherShield(PUSHT_ROBOT)
+    (p_p, p_v, p_u), (v_p, v_v, v_u) = robot.transition(robot.substeps)[-1]
+    earlier, velocity = np.array([[90.0, 50.0]]), np.array([[40.0, 10.0]])
+    shield(None, earlier, np.array([[130.0, 60.0]]), step=3)
+    position = p_p * earlier + p_v * velocity + p_u * np.array([[130.0, 60.0]])
+    now = v_p * earlier + v_v * velocity + v_u * np.array([[130.0, 60.0]])
+    shield.last = (3, earlier, [np.array([[130.0, 60.0]])], velocity)  # known at step 3
+    held, replaced = np.array([[160.0, 70.0]]), np.array([[120.0, 90.0]])
+    shield(None, position, held, step=4)
+    shield(None, position, replaced, step=4)  # the same observation: sent after the held one
+    in_force = held if executed == "held" else replaced
+    later = p_p * position + p_v * now + p_u * in_force
+    truth = v_p * position + v_v * now + v_u * in_force
+    estimated, holding = shield.estimate(later, 5)
+    np.testing.assert_allclose(estimated, truth, rtol=1e-9)
+    np.testing.assert_array_equal(holding, replaced)  # what holds from now on: the latest
 
 
 def test_setpoints_outside_the_inflated_zone_still_let_the_body_in() -> None:

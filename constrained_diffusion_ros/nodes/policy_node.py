@@ -271,7 +271,6 @@ class PolicyNode(Node):
         self.zone_change_time: float | None = None
         self.replan_latency_ms = float("nan")
         self.zone_to_setpoint_ms = float("nan")  # the last safe setpoint sent for a zone
-        self._sent_at = float("nan")  # time.monotonic() of the last setpoint sent out of turn
         if self.zones.fixed is not None:
             self._publish_markers()  # viewers see the plug-in check from the start
         if self.mode == "realtime":
@@ -403,18 +402,21 @@ class PolicyNode(Node):
                 if self.context.ok():
                     raise
 
-    def _hold(self, setpoint: np.ndarray | None, send_now: bool = False) -> None:
-        """Realtime: `setpoint` is what the clock sends from now on (sent at once if asked)."""
+    def _hold(self, setpoint: np.ndarray | None, send_now: bool = False) -> float | None:
+        """Realtime: `setpoint` is what the clock sends from now on (sent at once if asked);
+        when it was sent (time.monotonic()), or None if it was not."""
         if setpoint is None or self.latest_stamp is None:
-            return
+            return None
         setpoint = self._sendable(setpoint)
         message = point_message(setpoint, self.latest_stamp)
+        sent = None
         with self._send_lock:
             self._held = message
             if send_now:
                 self.setpoint_pub.publish(message)
-                self._sent_at = time.monotonic()
+                sent = time.monotonic()
         self._count_violation(setpoint)
+        return sent
 
     def _on_markers_timer(self) -> None:
         if self._markers_due:  # viewers see zone changes at most once per tick
@@ -619,9 +621,11 @@ class PolicyNode(Node):
             self._publish_markers()
             return
         self._markers_due = True
+
         def send(safe: np.ndarray) -> None:
-            self._hold(safe, send_now=True)
-            self.zone_to_setpoint_ms = 1000 * (self._sent_at - received)
+            sent = self._hold(safe, send_now=True)
+            if sent is not None:
+                self.zone_to_setpoint_ms = 1000 * (sent - received)
 
         self.controller.zones_changed(send)
 

@@ -127,6 +127,7 @@ def committed_prefix(queue: ActionQueue, rows: np.ndarray, step: int, delay: int
 
 CLOCK_PRIORITY = 50  # SCHED_FIFO priority of the control clock where allowed (ros2_control's)
 EXECUTOR_PRIORITY = 40  # the node's executor thread, which reacts to zones: below the clock
+LATENESS_WINDOW = 100  # ticks over which the clock's lateness is kept for diagnostics
 
 
 def request_fifo(priority: int) -> bool:
@@ -143,7 +144,6 @@ def request_fifo(priority: int) -> bool:
     except OSError:
         return False
     return True
-LATENESS_WINDOW = 100  # ticks over which the clock's lateness is kept for diagnostics
 
 
 class ControlClock:

@@ -13,6 +13,9 @@ from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.logging import get_logger
 from rclpy.node import Node
+from rclpy.publisher import Publisher
+from rclpy.subscription import Subscription
+from rclpy.timer import Timer
 
 from msg_schemas.parameters import Param, usage
 
@@ -26,6 +29,29 @@ def answered_help(args: list[str] | None, name: str, summary: str,
         print(usage(name, summary, parameters))
         return True
     return False
+
+
+def log_matches(node: Node, endpoints: Sequence[Publisher | Subscription],
+                period_s: float = 0.2) -> Timer:
+    """Logs "<topic>: N subscriber(s) matched" (a publisher) or "... publisher(s) matched" (a
+    subscription) whenever N changes, counted on this endpoint's own side of discovery. The graph
+    can list a subscriber before a publisher has matched it, and a best-effort message sent in
+    between never reaches it: a tool that must not lose the first messages (a recorded trial)
+    waits on these lines."""
+    counts = [0] * len(endpoints)
+
+    def check() -> None:
+        for index, endpoint in enumerate(endpoints):
+            if isinstance(endpoint, Publisher):
+                count, side = endpoint.get_subscription_count(), "subscriber"
+            else:
+                count, side = endpoint.get_publisher_count(), "publisher"
+            if count != counts[index]:
+                counts[index] = count
+                node.get_logger().info(f"{endpoint.topic_name}: {count} {side}(s) matched")
+
+    check()
+    return node.create_timer(period_s, check)
 
 
 def spin_node(factory: Callable[[], Node], name: str, args: list[str] | None = None,

@@ -42,7 +42,7 @@ from msg_schemas.conversions import (
     stamp_of_step,
 )
 from msg_schemas.parameters import Param, declare
-from msg_schemas.spin import spin_node
+from msg_schemas.spin import log_matches, spin_node
 from msg_schemas.text import one_line
 from sim_bridge.physics import PushTSim
 from sim_bridge.scene import CONTROL_HZ, COORD_LIMITS
@@ -105,6 +105,7 @@ class SimNode(Node):
         self.keypoints_pub = publisher(PolygonStamped, "keypoints")
         self.pusher_pub = publisher(PointStamped, "pusher")
         self.clock_pub = publisher(Clock, "clock")
+        log_matches(self, [self.pusher_pub, self.pose_pub])  # who gets the first observation
         setpoint = TOPICS["setpoint"]
         self.create_subscription(PointStamped, setpoint.name, self.on_setpoint,
                                  qos_profile(setpoint))

@@ -129,8 +129,8 @@ def run_trial(args: argparse.Namespace) -> dict:
     try:
         _, recorder_log = children.start("recorder", output=output / "bag",
                                          metadata_file=metadata_file)
-        children.start("sim_node", seed=args.seed, mode="lockstep", max_steps=args.steps,
-                       autostart=False)
+        _, sim_log = children.start("sim_node", seed=args.seed, mode="lockstep",
+                                    max_steps=args.steps, autostart=False)
         plug_in, zone_topic = {}, None  # a plug-in check goes to the policy, zones to topics
         if scenario is not None and scenario.plugin:
             plug_in = {"restricted_area": scenario.plugin["class"],
@@ -141,10 +141,10 @@ def run_trial(args: argparse.Namespace) -> dict:
             children.start("zone_publisher", scenario=args.scenario,
                            scenarios_file=args.scenarios_file,
                            keepout_resolution=args.keepout_grid)
-        children.start("policy_node", threads=POLICY_THREADS, torch_threads=POLICY_THREADS,
-                       model=args.model,
-                       configuration=args.configuration,
-                       configurations_file=args.configurations_file, **plug_in)
+        _, policy_log = children.start("policy_node", threads=POLICY_THREADS,
+                                       torch_threads=POLICY_THREADS, model=args.model,
+                                       configuration=args.configuration,
+                                       configurations_file=args.configurations_file, **plug_in)
 
         def spin_until(condition, what: str) -> None:
             while not condition():
@@ -164,13 +164,17 @@ def run_trial(args: argparse.Namespace) -> dict:
                     node.count_subscribers(zone_topic) >= 2
             return ready
 
-        def recorder_matched() -> bool:
-            """The recorder has matched the publishers the trial's figures come from (its log
-            says so). Seen in CI: a recorder that matched the policy 0.2 s before a short trial
-            ended kept none of the first five setpoints (their history came too late)."""
-            text = recorder_log.read_text()
-            return all(re.search(rf"{re.escape(TOPICS[topic].resolved())}: [1-9]\d* "
-                                 rf"publisher\(s\) matched", text) for topic in recorded_first)
+        def publishers_matched() -> bool:
+            """Both sides of discovery have matched (the nodes' logs say so): the recorder the
+            publishers the trial's figures come from, and the simulator's and the policy's
+            publishers every subscriber the graph shows. Seen in CI: a recorder that matched the
+            policy 0.2 s before a short trial ended kept none of the first five setpoints, and a
+            bag without the first setpoint (the policy had not matched the recorder yet)."""
+            return (all(matched(recorder_log, topic, "publisher") >= 1 for topic in recorded_first)
+                    and all(matched(log, topic, "subscriber") >= node.count_subscribers(
+                        TOPICS[topic].name) for log, topic in ((policy_log, "setpoint"),
+                                                               (sim_log, "pusher"),
+                                                               (sim_log, "block_pose"))))
 
         # The zones too: seen in CI, a bag without the zone message (the recorder matched the
         # zone publisher only after its latched history could still reach it).
@@ -179,7 +183,7 @@ def run_trial(args: argparse.Namespace) -> dict:
             recorded_first.append("keepout_mask" if args.keepout_grid else "zones")
 
         spin_until(discovered, "the nodes to discover each other")
-        spin_until(recorder_matched, "the recorder to match the publishers")
+        spin_until(publishers_matched, "the publishers and the recorder to match")
         if scenario is not None:  # the policy echoes the zones in force as markers, one each
             expected = len(scenario.polygons_at(0))  # (a mask's pieces: at least one)
 
@@ -209,6 +213,14 @@ def run_trial(args: argparse.Namespace) -> dict:
         rclpy.try_shutdown(context=context)
     make_figures(output, scenario, args, received)
     return metadata
+
+
+def matched(log: Path, topic: str, side: str) -> int:
+    """The last count of `side`s ("publisher" or "subscriber") a node logged as matched on the
+    contract topic (msg_schemas.spin.log_matches); 0 before any."""
+    counts = re.findall(rf"{re.escape(TOPICS[topic].resolved())}: (\d+) {side}\(s\) matched",
+                        log.read_text())
+    return int(counts[-1]) if counts else 0
 
 
 def trial_log(received: dict, seed: int, steps: int) -> RolloutLog:

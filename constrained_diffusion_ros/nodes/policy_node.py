@@ -76,7 +76,7 @@ from msg_schemas.conversions import (
     zone_markers,
 )
 from msg_schemas.parameters import Param, declare
-from msg_schemas.spin import spin_node
+from msg_schemas.spin import log_matches, spin_node
 from msg_schemas.text import one_line
 from sim_bridge.scene import observation as pusht_observation
 
@@ -222,6 +222,7 @@ class PolicyNode(Node):
         self.plan_pub = self._publisher("plan", PathMsg)
         self.marker_pub = self._publisher("zone_markers", MarkerArray)
         self.status_pub = self._publisher("diagnostics", DiagnosticArray)
+        log_matches(self, [self.setpoint_pub])  # who gets the first setpoint
         self._health_counts: dict[str, int] = {}
         # Zones first: when a zone and an observation are ready together, the zone is taken first.
         # From any publisher: a volatile subscription matches every one, a transient-local one

@@ -50,7 +50,7 @@ from rosbags.typesys import Stores, get_typestore
 from constrained_diffusion_ros.evaluation import bags
 from msg_schemas import NAMESPACE, TOPICS, Endpoint, qos_profile
 from msg_schemas.parameters import Param, declare
-from msg_schemas.spin import answered_help
+from msg_schemas.spin import answered_help, log_matches
 
 
 def message_class(type_name: str) -> type:
@@ -109,8 +109,8 @@ class Recorder(Node):
                 partial(self.on_message, endpoint, topic), qos_profile(endpoint, "recorder"),
                 raw=True)
         self.counts = dict.fromkeys(self.subscriptions_by_topic, 0)
-        self.publisher_counts = dict.fromkeys(self.subscriptions_by_topic, 0)
-        self.publisher_timer = self.create_timer(0.2, self.check_publishers)
+        # What is being recorded, logged as it changes.
+        self.publisher_timer = log_matches(self, list(self.subscriptions_by_topic.values()))
         self.flush_timer = self.create_timer(bags.FLUSH_PERIOD_S, self.flush)
         self.get_logger().info(f"recording {len(TOPICS)} topics to {self.output}")
 
@@ -141,14 +141,6 @@ class Recorder(Node):
     def flush(self) -> None:
         if self.writer is not None:
             bags.flush(self.writer)
-
-    def check_publishers(self) -> None:
-        """Log each topic's matched publishers when the number changes: what is being recorded."""
-        for name, subscription in self.subscriptions_by_topic.items():
-            count = subscription.get_publisher_count()
-            if count != self.publisher_counts[name]:
-                self.publisher_counts[name] = count
-                self.get_logger().info(f"{name}: {count} publisher(s) matched")
 
     def close(self) -> None:
         """Store the metadata and finish the bag; safe to call twice."""

@@ -4,6 +4,7 @@ Part of the ROS interface layer so that the simulator node and the policy-side n
 
 from __future__ import annotations
 
+import gc
 import sys
 from collections.abc import Callable, Sequence
 
@@ -69,6 +70,11 @@ def spin_node(factory: Callable[[], Node], name: str, args: list[str] | None = N
         get_logger(name).error(str(error))
         rclpy.try_shutdown()
         return 1
+    # What start-up built (torch, the model, ROS) stays for good: frozen out of the collector,
+    # whose full passes would otherwise scan it with the interpreter held (200 ms measured in
+    # the policy node, time its control clock cannot send in).
+    gc.collect()
+    gc.freeze()
     try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):

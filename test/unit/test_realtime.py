@@ -24,6 +24,7 @@ from constrained_diffusion_ros.planning.realtime import (
     RealtimeController,
     committed_prefix,
     request_fifo,
+    warm_up,
 )
 from constrained_diffusion_ros.planning.workers import (
     BackgroundPlanner,
@@ -333,6 +334,22 @@ def test_a_zone_arriving_mid_chunk_gets_a_safe_setpoint_before_the_next_tick(
         assert controller.zones_changed() is None
     finally:
         controller.shutdown()
+
+
+def test_warming_up_leaves_the_planner_as_a_fresh_one(tiny_policy: DiffusionPolicy) -> None:
+    """The zone reaction runs once before the clock starts (first calls paid before a real
+    zone); the shield it touched is reset, so the setpoints that follow are a fresh planner's."""
+    fresh, warmed = (ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT) for _ in range(2))
+    warm_up(warmed)
+    zones = LiveZones()
+    zones.upsert(1, rectangle(180, 180, 220, 220), now=0.0)
+    target = np.array([[210.0, 200.0]])  # inside: each guard moves it
+    for step, x in enumerate((150, 155, 160)):
+        observation = observation_with_pusher(x, 200)[None]
+        expected = fresh.guard(zones.area_at(step), observation, target, step)
+        assert not np.array_equal(expected, target)
+        np.testing.assert_array_equal(warmed.guard(zones.area_at(step), observation, target,
+                                                   step), expected)
 
 
 def test_a_new_configuration_drops_the_plan_in_flight(tiny_policy: DiffusionPolicy) -> None:

@@ -391,12 +391,12 @@ def test_fifo_priority_is_for_the_asking_thread_only_and_not_for_processes_it_st
     assert os.sched_getscheduler(0) == os.SCHED_OTHER  # the test's own thread is untouched
 
 
-def test_the_control_clock_ticks_on_its_own_thread_and_outlives_a_failing_tick() -> None:
-    threads: list[int] = []
+def test_the_control_clock_ticks_on_its_own_threads_and_outlives_a_failing_tick() -> None:
+    threads: list[str] = []
     three = threading.Event()
 
     def on_tick() -> None:
-        threads.append(threading.get_ident())
+        threads.append(threading.current_thread().name)
         if len(threads) == 1:
             raise RuntimeError("a send that failed")
         if len(threads) == 3:
@@ -407,7 +407,37 @@ def test_the_control_clock_ticks_on_its_own_thread_and_outlives_a_failing_tick()
         assert three.wait(5)
     finally:
         clock.shutdown()
-    assert threading.get_ident() not in threads and len(set(threads)) == 1
+    assert all(name.startswith("control_clock_") for name in threads)
+    assert threading.current_thread().name not in threads
+
+
+class HeldUp(ControlClock):
+    """A clock whose first thread always wakes 10 periods late, as on a CPU the hypervisor
+    has taken away."""
+
+    def _wait(self, seconds: float) -> bool:
+        if threading.current_thread().name.endswith("_0"):
+            seconds += 10 * self.period
+        return super()._wait(seconds)
+
+
+def test_a_clock_thread_woken_late_leaves_the_tick_to_the_other_and_none_is_sent_twice(
+        ) -> None:
+    sent: list[str] = []
+    enough = threading.Event()
+
+    def on_tick() -> None:
+        sent.append(threading.current_thread().name)
+        if len(sent) == 20:
+            enough.set()
+
+    clock = HeldUp(100.0, on_tick, threads=2)
+    try:
+        assert enough.wait(5)
+    finally:
+        clock.shutdown()
+    assert set(sent) == {"control_clock_1"}  # the late thread found each tick sent
+    assert clock.missed == 0 and clock.ticks == len(sent)
 
 
 def test_a_clock_held_up_drops_the_ticks_it_missed_instead_of_bursting() -> None:

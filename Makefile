@@ -31,6 +31,7 @@ bench: $(STAMP)
 	$(BIN)/benchmark_policy
 	$(BIN)/python scripts/bench_constraints.py --dataset $(DATASET)
 	$(BIN)/python scripts/bench_zones.py
+	$(BIN)/python scripts/bench_clock.py  # idle, then with a load it starts itself
 	$(BIN)/python scripts/bench_realtime.py  # idle, then with a load it starts itself
 
 # Table I's protocol (25 scenes) for every row, then our main rows on 100 scenes beside it.

@@ -129,7 +129,7 @@ def committed_prefix(queue: ActionQueue, rows: np.ndarray, step: int, delay: int
 
 CLOCK_PRIORITY = 50  # SCHED_FIFO priority of the control clock where allowed (ros2_control's)
 EXECUTOR_PRIORITY = 40  # the node's executor thread, which reacts to zones: below the clock
-LATENESS_WINDOW = 100  # ticks over which the clock's lateness is kept for diagnostics
+LATENESS_WINDOW = 100  # ticks over which the clock's lateness is kept (the diagnostics')
 
 
 def request_fifo(priority: int) -> bool:
@@ -183,13 +183,13 @@ class ControlClock:
 
     def __init__(self, rate_hz: float, on_tick: Callable[[], None],
                  priority: int = CLOCK_PRIORITY, name: str = "control_clock",
-                 threads: int | None = None) -> None:
+                 threads: int | None = None, window: int = LATENESS_WINDOW) -> None:
         self.period, self._on_tick, self._priority = 1.0 / rate_hz, on_tick, priority
         cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
         count = max(1, threads if threads is not None else min(2, len(cpus)))
         self.ticks = 0
         self.missed = 0  # ticks dropped because every thread woke more than a period late
-        self.lateness: deque[float] = deque(maxlen=LATENESS_WINDOW)  # s, the latest ticks'
+        self.lateness: deque[float] = deque(maxlen=window)  # s, the latest ticks'
         self._next_tick = 0  # index of the next tick to send (tick k is due at start + k periods)
         self._tick_lock = threading.Lock()
         self._stop = threading.Event()

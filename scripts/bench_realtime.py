@@ -11,7 +11,9 @@ the policy run, drop a square zone on the waypoints the plan in force is about t
     p99, as sent (the policy's publish timestamps) and as received by the client;
   - the time from publishing a zone to the first moment the setpoint in force respects it
     (outside the zone grown by the pusher radius), over all trials and over the trials where
-    the node changed its setpoint for the zone (its `zone_reactions` count rose);
+    the node changed its setpoint for the zone (its `zone_reactions` count rose), as the
+    client's callback got it, as its middleware received it, as the policy sent it, and inside
+    the node;
   - setpoints within the pusher radius of the zone after that moment, and steps where the
     pusher's disc overlaps the zone (placed so that it starts outside);
 then a 1 kHz zone flood (zones in force = last message per id how soon after it ends; the period
@@ -111,6 +113,9 @@ class Condition:
     # s, zone published -> the policy sent the first safe setpoint (its own source timestamp,
     # free of the client's receiving), in the trials where it changed its setpoint
     reacted_sent: list[float] = field(default_factory=list)
+    # s, the same to when the client's middleware received it (its reception timestamp, before
+    # the client's executor took it)
+    reacted_delivered: list[float] = field(default_factory=list)
     in_node: list[float] = field(default_factory=list)  # s, the node's zone_to_setpoint_ms
     inside_after: int = 0
     overlap_steps: int = 0
@@ -141,6 +146,7 @@ class Client:
         self.executor.add_node(self.node)
         self.setpoints: list[tuple[float, np.ndarray]] = []
         self.published: list[float] = []  # s, the policy's own clock when it sent each setpoint
+        self.delivered: list[float] = []  # s, when the client's middleware received each one
         self.pushers: list[tuple[float, int, np.ndarray]] = []
         self.plan: np.ndarray | None = None
         self.plan_time = 0.0
@@ -175,6 +181,7 @@ class Client:
     def _on_setpoint(self, msg, info: dict) -> None:
         self.setpoints.append((time.monotonic(), point_of(msg)))
         self.published.append(info["source_timestamp"] * 1e-9)
+        self.delivered.append(info["received_timestamp"] * 1e-9)
 
     def _on_plan(self, msg) -> None:
         self.plan, self.plan_time = path_of(msg), time.monotonic()
@@ -301,8 +308,10 @@ def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
     result.latencies.append(latency)
     if reacted:
         result.reacted.append(latency)
-        sent = client.published[n_setpoints + first_index] if first_index is not None else None
-        result.reacted_sent.append(float("inf") if sent is None else sent - published_wall)
+        for stamps, kept in ((client.published, result.reacted_sent),
+                             (client.delivered, result.reacted_delivered)):
+            kept.append(float("inf") if first_index is None
+                        else stamps[n_setpoints + first_index] - published_wall)
         result.in_node.append(float(client.status.get("zone_to_setpoint_ms", "nan")) / 1000)
     result.inside_after += sum(not respects(shape, p) for t, p in after
                                if first is not None and t > first)
@@ -396,8 +405,9 @@ def report(name: str, result: Condition, nominal: float) -> None:
     print(f"    ... in the {len(reacted)} trials where the node changed its setpoint for the "
           f"zone: {ms(reacted)}")
     print(f"    ... the same, to when the policy sent it (its source timestamp): "
-          f"{ms(np.array(result.reacted_sent))}; inside the node (zone callback -> sent): "
-          f"{ms(np.array(result.in_node))}")
+          f"{ms(np.array(result.reacted_sent))}; to when the client's middleware received it "
+          f"(its reception timestamp): {ms(np.array(result.reacted_delivered))}; inside the "
+          f"node (zone callback -> sent): {ms(np.array(result.in_node))}")
     print(f"    setpoints within the pusher radius of the zone after that (0.5 px tolerance): "
           f"{result.inside_after}; steps with the pusher's disc in the zone: "
           f"{result.overlap_steps}" + (f" (deepest {result.overlap_px:.2f} px)"

@@ -46,6 +46,7 @@ from constrained_diffusion_ros.planning.config import load_configurations
 from constrained_diffusion_ros.planning.executor import ChunkExecutor
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.planning.realtime import (
+    CLOCK_PRIORITY,
     EXECUTOR_PRIORITY,
     ControlClock,
     RealtimeController,
@@ -111,8 +112,8 @@ PARAMETERS = (
     Param("prefix_soft", 4, "realtime: waypoints after the committed ones drawn toward the "
           "chunk in force; -1: no inpainting", read_only=True, low=-1),
     Param("executor_priority", EXECUTOR_PRIORITY, "realtime: SCHED_FIFO priority of the "
-          "executor thread, which answers zones and observations (the clock has 50); 0: normal "
-          "scheduling", read_only=True, low=0, high=98),
+          f"executor thread, which answers zones and observations (the clock has "
+          f"{CLOCK_PRIORITY}); 0: normal scheduling", read_only=True, low=0, high=98),
     Param("torch_threads", 1, "torch threads of the planner (1 is best on 2 cores; about "
           "half the cores on bigger machines)", read_only=True, low=1, high=256),
     Param("device", "cpu", f"where the network runs: {DEVICES} (the zones stay on the CPU)",

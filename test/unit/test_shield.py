@@ -88,7 +88,6 @@ def test_the_setpoint_the_robot_executed_is_told_from_those_sent_for_one_observa
     robot, shield = PUSHT_ROBOT, PusherShield(PUSHT_ROBOT)
     (p_p, p_v, p_u), (v_p, v_v, v_u) = robot.transition(robot.substeps)[-1]
     earlier, velocity = np.array([[90.0, 50.0]]), np.array([[40.0, 10.0]])
-    shield(None, earlier, np.array([[130.0, 60.0]]), step=3)
     position = p_p * earlier + p_v * velocity + p_u * np.array([[130.0, 60.0]])
     now = v_p * earlier + v_v * velocity + v_u * np.array([[130.0, 60.0]])
     shield.last = (3, earlier, [np.array([[130.0, 60.0]])], velocity)  # known at step 3

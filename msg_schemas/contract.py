@@ -10,6 +10,7 @@ the rclpy QoS when needed.
 
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass
 
 FRAME_ID = "workspace"  # PushT workspace: 512 x 512 px, origin top-left, y down (as the image)
@@ -38,6 +39,12 @@ class Endpoint:
             return self.name
         prefix = namespace.strip("/")
         return f"/{prefix}/{self.name}" if prefix else f"/{self.name}"
+
+    def message_class(self) -> type:
+        """The generated Python class of `type` ("geometry_msgs/msg/PointStamped" ->
+        geometry_msgs.msg.PointStamped); imported when asked, so the contract needs no ROS."""
+        package, kind, name = self.type.split("/")
+        return getattr(importlib.import_module(f"{package}.{kind}"), name)
 
 
 TOPICS: dict[str, Endpoint] = {e.key: e for e in (

@@ -65,7 +65,28 @@ def messages_of(messages: dict[str, list], endpoint: Endpoint) -> list:
 
 def read_trial(bag: str | Path) -> dict[str, dict[int, object]]:
     """Pusher, block pose and setpoint messages keyed by control step (from header stamps)."""
-    messages = read_messages(bag)
+    return trial_steps(read_messages(bag))
+
+
+def read_unfinished(bag: Path) -> dict[str, list]:
+    """The messages a bag still being recorded holds so far (what the recorder has handed to
+    the operating system: up to FLUSH_PERIOD_S behind), deserialised, per topic: a trial checks
+    its bag with it before it stops the nodes."""
+    files = bag_information(bag).get("relative_file_paths") or []
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    messages: dict[str, list] = defaultdict(list)
+    try:
+        with (bag / files[0]).open("rb") as stream:
+            for schema, channel, message in _complete_messages(stream):
+                messages[channel.topic].append(typestore.deserialize_cdr(message.data,
+                                                                         schema.name))
+    except (IndexError, FileNotFoundError):
+        pass  # no storage file yet
+    return dict(messages)
+
+
+def trial_steps(messages: dict[str, list]) -> dict[str, dict[int, object]]:
+    """The trial topics' messages of a bag (`read_messages`), keyed by control step."""
     trial: dict[str, dict[int, object]] = {}
     for kind, topic in TRIAL_TOPICS.items():
         trial[kind] = {}

@@ -21,6 +21,7 @@ import numpy as np
 import yaml
 
 from constrained_diffusion_ros.cli import ArgumentParser, positive_int, run_command
+from constrained_diffusion_ros.evaluation.bags import read_trial, read_unfinished, trial_steps
 from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_domain_id
 from constrained_diffusion_ros.evaluation.rollout import RolloutLog
 from constrained_diffusion_ros.evaluation.scenarios import Scenario, load_scenarios
@@ -35,6 +36,9 @@ from sim_bridge import CONTROL_HZ
 # busy process with 1 thread, 57.1 s and 148 s with 2 (this 2-core machine): the second thread
 # gains nothing idle and fights any other load.
 POLICY_THREADS = 1
+# How long after the last step the bag may still lack messages: DDS resends a reliable message
+# its reader missed after the writer's next heartbeat (every 3 s by Fast DDS's default).
+RECORDING_GRACE_S = 10.0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -115,6 +119,16 @@ def run_trial(args: argparse.Namespace) -> dict:
                                   ("setpoint", "setpoint", PointStamped)):
         node.create_subscription(msg_type, TOPICS[topic].name, keep(kind),
                                  qos_profile(TOPICS[topic], "recorder"))
+    # Every contract topic heard: the bag must hold each of them before the nodes stop.
+    heard: set[str] = set()
+
+    def hear(topic: str):
+        return lambda _data: heard.add(topic)
+
+    for endpoint in TOPICS.values():
+        node.create_subscription(endpoint.message_class(), endpoint.name,
+                                 hear(endpoint.resolved()), qos_profile(endpoint, "recorder"),
+                                 raw=True)
     zones_in_force: list[int] = []
     node.create_subscription(
         MarkerArray, TOPICS["zone_markers"].name,
@@ -146,22 +160,28 @@ def run_trial(args: argparse.Namespace) -> dict:
                                        configuration=args.configuration,
                                        configurations_file=args.configurations_file, **plug_in)
 
-        def spin_until(condition, what: str) -> None:
+        def spin_until(condition, what: str, until: float = deadline) -> None:
             while not condition():
                 failure = children.failed()
                 if failure:
                     raise RuntimeError(failure)
-                if time.monotonic() > deadline:
+                if time.monotonic() > until:
                     raise RuntimeError(f"timed out waiting for {what}")
                 executor.spin_once(timeout_sec=0.05)
 
+        def subscribed(topic: str) -> bool:
+            """Every node the contract names as a subscriber of `topic` is in the graph (counted
+            without this node's own subscriptions)."""
+            own = sum(s.topic_name == TOPICS[topic].resolved() for s in node.subscriptions)
+            return node.count_subscribers(TOPICS[topic].name) - own >= \
+                len(TOPICS[topic].subscribers)
+
         def discovered() -> bool:
-            setpoint, pusher = TOPICS["setpoint"].name, TOPICS["pusher"].name
-            ready = (node.count_publishers(setpoint) >= 1 and node.count_subscribers(setpoint) >= 3
-                     and node.count_subscribers(pusher) >= 3 and reset.service_is_ready())
+            ready = (node.count_publishers(TOPICS["setpoint"].name) >= 1 and subscribed("setpoint")
+                     and subscribed("pusher") and reset.service_is_ready())
             if zone_topic is not None:
                 ready &= node.count_publishers(zone_topic) >= 1 and \
-                    node.count_subscribers(zone_topic) >= 2
+                    subscribed("keepout_mask" if args.keepout_grid else "zones")
             return ready
 
         def publishers_matched() -> bool:
@@ -200,6 +220,18 @@ def run_trial(args: argparse.Namespace) -> dict:
                     and all(t in received["setpoint"] for t in range(args.steps)))
 
         spin_until(complete, f"{args.steps} control steps")
+
+        def recorded() -> bool:
+            """The bag holds every step and every topic heard. Seen in CI: a bag without a
+            single message of the policy node's, stopped 2 s after its start (a reliable
+            writer that missed its first sample only sends it again after a heartbeat)."""
+            bag = read_unfinished(output / "bag")
+            steps = trial_steps(bag)
+            return heard <= set(bag) and all(steps[kind].keys() >= received[kind].keys()
+                                             for kind in received)
+
+        spin_until(recorded, "the recorder to hold every step and topic (see recorder.log)",
+                   time.monotonic() + RECORDING_GRACE_S)
         results = trial_results(received, scenario, args)
         metadata["results"] = results
         metadata_file.write_text(json.dumps(metadata, indent=2))
@@ -254,7 +286,6 @@ def make_figures(output: Path, scenario, args: argparse.Namespace, received: dic
     the bag lacks some (said on stderr: the trial's results stand, the bag is incomplete)."""
     import imageio.v3 as iio
 
-    from constrained_diffusion_ros.evaluation.bags import read_trial
     from constrained_diffusion_ros.evaluation.report import plot_frames
     from sim_bridge import render_scene
 

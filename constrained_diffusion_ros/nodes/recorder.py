@@ -21,7 +21,6 @@ Run: `recorder --ros-args -p output:=trials/run1 -p metadata_file:=trials/run1.j
 
 from __future__ import annotations
 
-import importlib
 import json
 import signal
 import sys
@@ -51,12 +50,6 @@ from constrained_diffusion_ros.evaluation import bags
 from msg_schemas import NAMESPACE, TOPICS, Endpoint, qos_profile
 from msg_schemas.parameters import Param, declare
 from msg_schemas.spin import answered_help, log_matches
-
-
-def message_class(type_name: str) -> type:
-    """'geometry_msgs/msg/PointStamped' -> the generated Python class."""
-    package, kind, name = type_name.split("/")
-    return getattr(importlib.import_module(f"{package}.{kind}"), name)
 
 
 def bag_qos(profile: QoSProfile) -> Qos:
@@ -105,7 +98,7 @@ class Recorder(Node):
         for endpoint in TOPICS.values():
             topic = self.resolve_topic_name(endpoint.name)
             self.subscriptions_by_topic[topic] = self.create_subscription(
-                message_class(endpoint.type), endpoint.name,
+                endpoint.message_class(), endpoint.name,
                 partial(self.on_message, endpoint, topic), qos_profile(endpoint, "recorder"),
                 raw=True)
         self.counts = dict.fromkeys(self.subscriptions_by_topic, 0)

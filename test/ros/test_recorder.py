@@ -144,8 +144,11 @@ def test_a_recorder_killed_mid_trial_keeps_what_it_had_a_second_before(ros, sim,
 
     with pytest.raises(ReaderError):
         _bag_counts(bag)
+    unfinished = bags.read_unfinished(bag)  # as a trial reads its bag while it is recorded
     assert bags.main([str(bag)]) == 0
     counts, messages, _ = _bag_counts(bag)
+    assert {topic: len(listed) for topic, listed in unfinished.items()} == counts
+    assert unfinished[pusher] == messages[pusher]
     recorded = [stamp_ns(m.header.stamp) for m in messages[pusher]]
     recorded = set(recorded[len(recorded) - recorded[::-1].index(0):])  # since the reset
     due = [stamp for stamp, at in received_at.items() if at <= killed - 1.0]

@@ -38,7 +38,9 @@ def run_trial_command(output, model, configurations_file, *arguments: str) -> st
         if process.poll() is None:  # the trial stops its own nodes on SIGINT
             process.send_signal(signal.SIGINT)
             process.communicate(timeout=20)
-    assert process.returncode == 0, out
+    logs = "".join(f"\n--- {log.name}\n{log.read_text()}" for log in sorted(output.glob("*.log")))
+    assert process.returncode == 0, out + logs
+    assert "warning" not in out, out + logs  # e.g. a bag that lacks steps
     return out
 
 

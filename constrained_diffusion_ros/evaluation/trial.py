@@ -3,9 +3,10 @@
 Starts the recorder, the simulator (lockstep), the zone publisher and the policy node, as a
 launch file would, in a ROS domain of its own; waits until they have discovered each other;
 resets the scene to the seed; lets the policy act for the requested number of control steps;
-stops every process cleanly; prints score and violations; and leaves, in the output directory,
-the rosbag2 (MCAP) bag with the trial's metadata, a strip of frames (PNG, like the paper's
-Fig. 1) and an animated GIF.
+waits until the bag holds every step and every topic the trial heard; stops every process
+cleanly; prints score and violations; and leaves, in the output directory, the rosbag2 (MCAP)
+bag with the trial's metadata, a strip of frames (PNG, like the paper's Fig. 1) and an animated
+GIF.
 """
 
 from __future__ import annotations

@@ -168,6 +168,7 @@ class ZoneSet(RestrictedArea):
     """
 
     compute_dtype: torch.dtype = torch.float64
+    _inside_dropped = False  # a view of some rings (`near`): inside an odd number of the rest
 
     _caches = ("_derived_areas", "_tensors")
 
@@ -177,10 +178,10 @@ class ZoneSet(RestrictedArea):
         self._geometry = shapely.orient_polygons(union, exterior_cw=False)
         self._parts = [p for p in shapely.get_parts(self._geometry) if not p.is_empty]
         rings = [np.asarray(r.coords) for p in self._parts for r in (p.exterior, *p.interiors)]
-        # Each edge's ring, and each ring's bounds: what `near` keeps or drops.
+        # Each edge's ring and bounds (x_min, y_min, x_max, y_max): what `near` keeps or drops.
         self._table, self._ring_of_edge = _ring_edges(rings)
-        self._ring_bounds = np.array([[*r.min(axis=0), *r.max(axis=0)] for r in rings]
-                                     ).reshape(-1, 4)
+        ends = np.stack([self._table[:, 0], self._table[:, 0] + self._table[:, 1]])
+        self._edge_bounds = np.concatenate([ends.min(axis=0), ends.max(axis=0)], axis=1)
         self._scale = max(1.0, float(np.abs(self._table[:, 0]).max(initial=0.0)))
         self._tensors: dict[tuple[torch.dtype, torch.device], tuple[Tensor, ...]] = {}
 
@@ -228,20 +229,31 @@ class ZoneSet(RestrictedArea):
         return self._like(shapely.get_parts(self._geometry.buffer(radius, quad_segs=quad_segs)))
 
     def near(self, points: Tensor, reach: float) -> ZoneSet:
-        """The rings whose bounds come within `reach` of the points' bounding box: a point
-        lies inside a ring only within its bounds, and a ring beyond `reach` of every point
-        is farther than `reach` from each, so `contains` and distances up to `reach` stay
-        exact. What moves points (projection, segments) and derived areas use the whole set."""
+        """The rings with an edge whose bounds come within `reach` of the points' bounding
+        box. Every other ring is farther than `reach` from each point, so distances up to
+        `reach` stay exact; and it does not meet the box, so the box lies wholly inside or
+        outside it: its part in `contains` is the same for every point, counted once (the
+        workspace frame's outer ring, around every point in the workspace, is such a ring).
+        What moves points (projection, segments) and derived areas use the whole set."""
         p = torch.as_tensor(points).detach().reshape(-1, 2).cpu()
         if len(p) == 0 or self.is_empty:
             return self
         reach = max(float(reach), 0.0)
-        low = p.amin(dim=0).double().numpy() - reach
-        high = p.amax(dim=0).double().numpy() + reach
-        bounds = self._ring_bounds
-        keep = ((bounds[:, 0] <= high[0]) & (bounds[:, 2] >= low[0])
-                & (bounds[:, 1] <= high[1]) & (bounds[:, 3] >= low[1]))
-        return self if keep.all() else _NearbyRings(self, keep[self._ring_of_edge])
+        corner = p.amin(dim=0).double().numpy()
+        low, high = corner - reach, p.amax(dim=0).double().numpy() + reach
+        bounds = self._edge_bounds
+        touching = ((bounds[:, 0] <= high[0]) & (bounds[:, 2] >= low[0])
+                    & (bounds[:, 1] <= high[1]) & (bounds[:, 3] >= low[1]))
+        touched = np.zeros(self._ring_of_edge[-1] + 1, dtype=bool)  # rings ascend by edge
+        touched[self._ring_of_edge[touching]] = True
+        keep = touched[self._ring_of_edge]
+        if keep.all() or not keep.any():  # nothing to drop, or nothing left to ask
+            return self
+        a, d = self._table[~keep, 0], self._table[~keep, 1]  # the dropped rings' edges
+        straddle = (a[:, 1] > corner[1]) != (a[:, 1] + d[:, 1] > corner[1])
+        x_cross = a[:, 0] + (corner[1] - a[:, 1]) * d[:, 0] / np.where(straddle, d[:, 1], 1.0)
+        crossings = int((straddle & (corner[0] < x_cross)).sum())
+        return _NearbyRings(self, keep, self._inside_dropped ^ bool(crossings % 2))
 
     def _like(self, polygons: Iterable[shapely.Polygon]) -> ZoneSet:
         """A new set of these polygons, computing in this set's dtype."""
@@ -380,7 +392,7 @@ class ZoneSet(RestrictedArea):
         ay = a[:, 1]
         straddle = (ay > py) != (ay + d[:, 1] > py)
         x_cross = a[:, 0] + (py - ay) * d[:, 0] / torch.where(straddle, d[:, 1], 1.0)
-        return (straddle & (px < x_cross)).sum(dim=-1) % 2 == 1
+        return ((straddle & (px < x_cross)).sum(dim=-1) + self._inside_dropped) % 2 == 1
 
     def _nearest(self, p: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Distance to the boundary, (point - nearest boundary point), nearest edge, and where
@@ -467,12 +479,16 @@ class ZoneSet(RestrictedArea):
 class _NearbyRings(ZoneSet):
     """A query view of a ZoneSet that keeps only some rings' edges (see `ZoneSet.near`)."""
 
-    def __init__(self, whole: ZoneSet, rows: np.ndarray) -> None:
-        self.__dict__.update(whole.__dict__)
-        self._whole = whole
-        self._table, self._ring_of_edge = whole._table[rows], whole._ring_of_edge[rows]
+    def __init__(self, area: ZoneSet, rows: np.ndarray, inside_dropped: bool) -> None:
+        """`rows`: the edges of `area` kept; `inside_dropped`: whether the points lie inside
+        an odd number of the rings dropped (the same for every point: see `near`)."""
+        self.__dict__.update(area.__dict__)
+        self._whole = getattr(area, "_whole", area)
+        self._inside_dropped = inside_dropped
+        self._table, self._ring_of_edge = area._table[rows], area._ring_of_edge[rows]
+        self._edge_bounds = area._edge_bounds[rows]
         self._tensors = {}
-        self._derived_areas = whole.__dict__.setdefault("_derived_areas", {})  # shared cache
+        self._derived_areas = self._whole.__dict__.setdefault("_derived_areas", {})  # shared
 
     def project_out(self, points: Tensor, margin: float = 0.0, passes: int = 2) -> Tensor:
         return self._whole.project_out(points, margin, passes)

@@ -209,6 +209,29 @@ def test_near_answers_like_the_whole_set_for_points_close_by() -> None:
     assert torch.equal(view.project_out(points, 5.0), zones.project_out(points, 5.0))
 
 
+@pytest.mark.parametrize("enclosing", ["workspace frame", "zone with a hole"])
+def test_near_drops_a_ring_around_the_points_and_still_knows_they_are_inside_it(
+        enclosing: str) -> None:
+    """A ring far from every point but around them (the workspace frame's outer ring around
+    the workspace; a zone's outer ring around points by its hole) leaves the view, and the
+    points stay inside (or outside) it as in the whole set."""
+    if enclosing == "workspace frame":
+        zones = ZoneSet.from_polygons([rectangle(200, 200, 240, 240)]).bounded(
+            (0.0, 0.0, 512.0, 512.0)).inflate(15.0)
+    else:
+        zones = ZoneSet([shapely.box(0, 0, 400, 400).difference(shapely.box(180, 180, 220, 220))])
+    points = 150 + 100 * torch.rand(500, 2, generator=torch.Generator().manual_seed(1),
+                                    dtype=torch.float64)
+    view = zones.near(points, 5.0)
+    assert len(view._table) < len(zones._table)  # the far ring is gone
+    inside = zones.contains(points)
+    assert inside.any() and (~inside).any() and torch.equal(view.contains(points), inside)
+    whole, local = zones.signed_distance(points), view.signed_distance(points)
+    close = whole.abs() < 5.0
+    assert close.any() and torch.equal(local[close], whole[close])
+    assert torch.equal(local < 5.0, whole < 5.0)
+
+
 def test_leaves_no_room_counts_every_piece_grown() -> None:
     """Many small pieces grown by r cover more than one piece's bound (k pi r^2, not pi r^2):
     625 cells of 2 px, 21 px apart, grown by 15 px cover the 512 px workspace; 16 px apart with

@@ -7,8 +7,11 @@ self-intersections."""
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import pytest
+import shapely
 import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -117,3 +120,28 @@ def test_the_reported_cases_are_clipped_or_refused() -> None:
                         dtype=np.float32).astype(np.float64)
     with pytest.raises(ValueError, match=r"collinear|sliver|area"):
         validate_polygon(sliver, "zone", WORKSPACE)
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(message_polygons(), min_size=0, max_size=3),
+       st.tuples(st.floats(0, 512), st.floats(0, 512)), st.floats(0.5, 80),
+       st.floats(0, 20), st.integers(0, 2**16), st.floats(2, 60))
+def test_near_answers_like_the_whole_area_the_shield_sees(polygons, centre, spread, reach,
+                                                          seed, side) -> None:
+    """The shield asks `near(path points, margin)` of the zones bounded by the workspace and
+    inflated: the same inside test, and the same distance wherever it is below the reach.
+    A square of `side` px beside the points' centre, and messages' polygons."""
+    x, y = centre
+    accepted = [shapely.box(x + side / 4, y, x + side, y + side)]
+    for vertices in polygons:
+        with contextlib.suppress(ValueError):  # refused zones are not in force
+            accepted.append(validate_polygon(vertices, "zone", WORKSPACE))
+    area = ZoneSet(accepted).bounded(WORKSPACE).inflate(RADIUS)
+    generator = torch.Generator().manual_seed(seed)
+    points = torch.tensor(centre) + spread * (torch.rand(120, 2, generator=generator) - 0.5)
+    view = area.near(points, reach)
+    assert torch.equal(view.contains(points), area.contains(points))
+    whole, local = area.signed_distance(points), view.signed_distance(points)
+    close = whole.abs() < reach
+    assert torch.equal(local[close], whole[close])
+    assert torch.equal(local < reach, whole < reach)

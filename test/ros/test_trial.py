@@ -12,10 +12,13 @@ import imageio.v3 as iio
 import numpy as np
 import yaml
 from ros_helpers import REPO, random_domain_id, stamp_step
+from rosbags.typesys import Stores, get_typestore
 
+from constrained_diffusion_ros.evaluation import bags
 from constrained_diffusion_ros.evaluation.bags import read_messages, read_trial
 from constrained_diffusion_ros.evaluation.runner import evaluate_configuration
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
+from constrained_diffusion_ros.evaluation.trial import bag_lacks
 from constrained_diffusion_ros.examples.camera import CameraZones
 from constrained_diffusion_ros.planning.config import load_configurations
 from constrained_diffusion_ros.policy.weights import load_policy
@@ -151,3 +154,36 @@ def test_a_keepout_grid_and_a_plug_in_check_are_obeyed_like_the_polygons(
         # setpoints to float rounding.
         assert np.abs(commanded - expected_log.commanded[0]).max() <= tolerance
         assert abs(results["s"] - expected.s) <= 0.02
+
+
+def test_a_bag_being_recorded_is_checked_for_every_step_and_topic_heard(tmp_path) -> None:
+    """What `trial` waits for before it stops the nodes: the bag, still open, is read as far
+    as the recorder has written it; a topic heard but not recorded, and a step the trial got
+    but the bag lacks, are named."""
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    types = typestore.types
+    writer = bags.open_bag(tmp_path / "bag", {})
+    setpoint, pusher = TOPICS["setpoint"], TOPICS["pusher"]
+    for endpoint, steps in ((setpoint, range(3)), (pusher, range(3))):
+        connection = writer.add_connection(endpoint.resolved(), endpoint.type,
+                                           typestore=typestore)
+        for step in steps:
+            header = types["std_msgs/msg/Header"](
+                stamp=types["builtin_interfaces/msg/Time"](sec=0, nanosec=step * 100_000_000),
+                frame_id="workspace")
+            message = types[endpoint.type](header=header, point=types[
+                "geometry_msgs/msg/Point"](x=1.0, y=2.0, z=0.0))
+            writer.write(connection, step, typestore.serialize_cdr(message, endpoint.type))
+    heard = {setpoint.resolved(), pusher.resolved(), TOPICS["plan"].resolved()}
+    received = {"pusher": dict.fromkeys(range(4)), "block": {},
+                "setpoint": dict.fromkeys(range(3))}
+    assert bag_lacks(tmp_path / "bag", heard, received) == [  # nothing written yet
+        *sorted(heard), "pusher of steps [0, 1, 2, 3]", "setpoint of steps [0, 1, 2]"]
+    bags.flush(writer)  # what the recorder does twice a second
+    assert bag_lacks(tmp_path / "bag", heard, received) == [
+        TOPICS["plan"].resolved(), "pusher of steps [3]"]
+    heard.discard(TOPICS["plan"].resolved())
+    del received["pusher"][3]
+    assert bag_lacks(tmp_path / "bag", heard, received) == []
+    writer.close()
+    assert bag_lacks(tmp_path / "bag", heard, received) == []

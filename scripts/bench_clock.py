@@ -14,12 +14,11 @@ from __future__ import annotations
 import argparse
 import itertools
 import os
-import subprocess
 import sys
 import threading
 
 import numpy as np
-from bench_realtime import cpu_times
+from bench_realtime import add_condition_arguments, background_load, cpu_times
 
 from constrained_diffusion_ros.planning.realtime import ControlClock
 
@@ -31,10 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seconds", type=float, default=20.0, help="length of one run")
     parser.add_argument("--pairs", type=int, default=4,
                         help="runs of each thread count per condition, alternated")
-    parser.add_argument("--conditions", nargs="+", default=["idle", "loaded"],
-                        choices=["idle", "loaded"], help="machine conditions to run")
-    parser.add_argument("--load", type=int, default=1,
-                        help="busy processes (one core each) in the loaded condition")
+    add_condition_arguments(parser)
     return parser
 
 
@@ -60,19 +56,13 @@ def main(argv: list[str] | None = None) -> int:
     print("| condition | threads | steal | late p50 | late p99 | late max | missed |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
     for condition in args.conditions:
-        load = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
-                for _ in range(args.load if condition == "loaded" else 0)]
-        try:
+        with background_load(args.load if condition == "loaded" else 0):
             for _ in range(args.pairs):
                 for threads in (1, 2):
                     late, steal, missed = one_run(threads, args)
                     print(f"| {condition} | {threads} | {steal:.2f}% | {np.median(late):.2f} ms "
                           f"| {np.percentile(late, 99):.2f} ms | {late.max():.2f} ms "
                           f"| {missed} |", flush=True)
-        finally:
-            for process in load:
-                process.kill()
-                process.wait()
     return 0
 
 

@@ -26,12 +26,14 @@ process per `--load` core, started and stopped by this script. Prints; asserts n
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import signal
 import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -78,10 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="constraint configurations to run (r_g10_p_safe: DDPM, 100 steps)")
     parser.add_argument("--trials", type=int, default=20,
                         help="trials (with a zone dropped) per condition")
-    parser.add_argument("--conditions", nargs="+", default=["idle", "loaded"],
-                        choices=["idle", "loaded"], help="machine conditions to run")
-    parser.add_argument("--load", type=int, default=1,
-                        help="busy processes (one core each) in the loaded condition")
+    add_condition_arguments(parser)
     parser.add_argument("--rate-hz", type=float, default=10.0, help="control rate")
     parser.add_argument("--warmup", type=float, default=2.0,
                         help="seconds of a trial before its zone is dropped")
@@ -428,12 +427,30 @@ def cpu_times() -> np.ndarray:
     return np.array([fields[7] if len(fields) > 7 else 0, sum(fields[:8])])
 
 
+def add_condition_arguments(parser: argparse.ArgumentParser) -> None:
+    """--conditions and --load, as every live benchmark takes them."""
+    parser.add_argument("--conditions", nargs="+", default=["idle", "loaded"],
+                        choices=["idle", "loaded"], help="machine conditions to run")
+    parser.add_argument("--load", type=int, default=1,
+                        help="busy processes (one core each) in the loaded condition")
+
+
+@contextlib.contextmanager
+def background_load(count: int) -> Iterator[None]:
+    """`count` busy processes (one core each) while the block runs, killed after it."""
+    load = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(count)]
+    try:
+        yield
+    finally:
+        for process in load:
+            process.kill()
+            process.wait()
+
+
 def run_condition(args: argparse.Namespace, loaded: bool) -> None:
     label = f"loaded ({args.load} busy process(es))" if loaded else "idle"
     print(f"\n== {label}, {os.cpu_count()} cores, {args.rate_hz:g} Hz ==", flush=True)
-    load = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
-            for _ in range(args.load if loaded else 0)]
-    try:
+    with background_load(args.load if loaded else 0):
         for index, configuration in enumerate(args.configurations):
             domain_id = random_domain_id()
             base = Path(args.log_dir or tempfile.mkdtemp(prefix="bench_realtime_"))
@@ -480,10 +497,6 @@ def run_condition(args: argparse.Namespace, loaded: bool) -> None:
             tail = (done.stdout + done.stderr).strip().splitlines()[-1:]
             print(f"  trial under load: exit {done.returncode} after "
                   f"{time.monotonic() - started:.0f} s; {' '.join(tail)}")
-    finally:
-        for process in load:
-            process.kill()
-            process.wait()
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
+from functools import cached_property
+from typing import NamedTuple
 
 import numpy as np
 import shapely
@@ -116,6 +118,16 @@ def leaves_no_room(zones: shapely.Geometry, workspace: Bounds, radius: float) ->
     return bool(box.difference(zones.buffer(radius)).is_empty)
 
 
+class _Edges(NamedTuple):
+    """A set's edges as `_ring_edges` makes them, with each edge's ring and bounds (x_min,
+    y_min, x_max, y_max), what `near` keeps or drops, and the coordinates' scale."""
+
+    table: np.ndarray  # (E, 6, 2)
+    ring_of_edge: np.ndarray  # (E,)
+    bounds: np.ndarray  # (E, 4)
+    scale: float
+
+
 def _cross(u: Tensor, v: Tensor) -> Tensor:
     return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
 
@@ -177,13 +189,34 @@ class ZoneSet(RestrictedArea):
         union = shapely.union_all([p for p in polygons if not p.is_empty])
         self._geometry = shapely.orient_polygons(union, exterior_cw=False)
         self._parts = [p for p in shapely.get_parts(self._geometry) if not p.is_empty]
-        rings = [np.asarray(r.coords) for p in self._parts for r in (p.exterior, *p.interiors)]
-        # Each edge's ring and bounds (x_min, y_min, x_max, y_max): what `near` keeps or drops.
-        self._table, self._ring_of_edge = _ring_edges(rings)
-        ends = np.stack([self._table[:, 0], self._table[:, 0] + self._table[:, 1]])
-        self._edge_bounds = np.concatenate([ends.min(axis=0), ends.max(axis=0)], axis=1)
-        self._scale = max(1.0, float(np.abs(self._table[:, 0]).max(initial=0.0)))
         self._tensors: dict[tuple[torch.dtype, torch.device], tuple[Tensor, ...]] = {}
+
+    @cached_property
+    def _edges(self) -> _Edges:
+        """Built at the first query, not with the set: a set only passed on to derive another
+        (the bounded zones, inflated next) or read for its geometry never needs them."""
+        rings = [np.asarray(r.coords) for p in self._parts for r in (p.exterior, *p.interiors)]
+        table, ring_of_edge = _ring_edges(rings)
+        ends = np.stack([table[:, 0], table[:, 0] + table[:, 1]])
+        bounds = np.concatenate([ends.min(axis=0), ends.max(axis=0)], axis=1)
+        return _Edges(table, ring_of_edge, bounds,
+                      max(1.0, float(np.abs(table[:, 0]).max(initial=0.0))))
+
+    @property
+    def _table(self) -> np.ndarray:
+        return self._edges.table
+
+    @property
+    def _ring_of_edge(self) -> np.ndarray:
+        return self._edges.ring_of_edge
+
+    @property
+    def _edge_bounds(self) -> np.ndarray:
+        return self._edges.bounds
+
+    @property
+    def _scale(self) -> float:
+        return self._edges.scale
 
     @classmethod
     def from_polygons(cls, polygons: Sequence[ArrayLike]) -> ZoneSet:
@@ -207,7 +240,7 @@ class ZoneSet(RestrictedArea):
 
     @property
     def is_empty(self) -> bool:
-        return len(self._table) == 0
+        return not self._parts
 
     @property
     def area(self) -> float:
@@ -485,8 +518,9 @@ class _NearbyRings(ZoneSet):
         self.__dict__.update(area.__dict__)
         self._whole = getattr(area, "_whole", area)
         self._inside_dropped = inside_dropped
-        self._table, self._ring_of_edge = area._table[rows], area._ring_of_edge[rows]
-        self._edge_bounds = area._edge_bounds[rows]
+        edges = area._edges
+        self._edges = _Edges(edges.table[rows], edges.ring_of_edge[rows], edges.bounds[rows],
+                             edges.scale)
         self._tensors = {}
         self._derived_areas = self._whole.__dict__.setdefault("_derived_areas", {})  # shared
 

@@ -305,6 +305,7 @@ class RealtimeController:
 
     # -- inputs ---------------------------------------------------------------------------
 
+    @torch.inference_mode()  # no autograd here: less overhead per torch call
     def observe(self, step: int, observation: np.ndarray) -> np.ndarray:
         """The observation (obs_dim,) of control step `step`; an earlier step than the newest
         starts a new episode. Returns the setpoint for this step (also held for `tick`)."""
@@ -358,6 +359,7 @@ class RealtimeController:
         a clock on another thread can send it without waiting for any computation."""
         return self.setpoint
 
+    @torch.inference_mode()  # no autograd here: less overhead per torch call
     def zones_changed(self, send: Callable[[np.ndarray], None] = lambda _: None
                       ) -> np.ndarray | None:
         """Zones changed: the held setpoint is shielded again and, if that changed it, the safe
@@ -387,6 +389,7 @@ class RealtimeController:
         return bool(self.planner.violates(torch.from_numpy(waypoints),
                                           self.zones.area_at(self.step), np.array([0])).any())
 
+    @torch.inference_mode()  # no autograd here: less overhead per torch call
     def install_results(self) -> np.ndarray | None:
         """Install the plans that arrived (on the caller's thread); the new setpoint to hold, or
         None if nothing arrived."""

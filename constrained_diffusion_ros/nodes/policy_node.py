@@ -121,6 +121,10 @@ PARAMETERS = (
     Param("planning_process", True, "realtime: plan in a child process, so planning never "
           "holds the interpreter lock that the clock and zone callbacks need; false: in a "
           "thread (a restricted_area plug-in that cannot be pickled needs it)", read_only=True),
+    Param("planning_idle", True, "realtime: the planning process at idle priority (SCHED_IDLE: "
+          "whatever else wakes runs first) where the node may raise it again (root or "
+          "RLIMIT_NICE), and at nice 5 for good once it gets under a quarter of a core; false: "
+          "nice 5 throughout", read_only=True),
     Param("max_zones", DEFAULT_MAX_ZONES, "zones in force at most; more are refused",
           read_only=True, low=1),
     Param("max_vertices", DEFAULT_MAX_VERTICES, "vertices per zone at most", read_only=True,
@@ -250,7 +254,7 @@ class PolicyNode(Node):
             self.controller = RealtimeController(
                 self.planner, self.zones, self.rate_hz, None if self.lead < 0 else self.lead,
                 self.soft, self.noise_seed, wake.trigger,
-                threads if values["planning_process"] else None)
+                threads if values["planning_process"] else None, values["planning_idle"])
             self.clock = ControlClock(self.rate_hz, self._on_tick)
             if not self.clock.realtime:
                 self.get_logger().warning(
@@ -477,6 +481,7 @@ class PolicyNode(Node):
                           tick_late_p99_ms=f"{1000 * self.clock.late_p99():.1f}",
                           clock_realtime=self.clock.realtime,
                           executor_realtime=self.executor_realtime,
+                          planning_priority=self.controller.worker.priority,
                           planning_errors=self.controller.worker.errors,
                           planning_error=one_line(self.controller.worker.error or ""))
         values["zone_ids"] = ",".join(str(i) for i in self.zones.ids)

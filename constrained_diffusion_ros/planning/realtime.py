@@ -280,9 +280,10 @@ class RealtimeController:
                  lead: int | None = None,
                  soft: int = 4, noise_seed: int = 0,
                  wake: Callable[[], None] = lambda: None,
-                 process_threads: int | None = None) -> None:
+                 process_threads: int | None = None, idle: bool = True) -> None:
         """`process_threads`: plan in a child process with that many torch threads (what the
-        node does); None: in a thread of this process."""
+        node does), at idle priority if `idle` (see `PlanningProcess`); None: in a thread of
+        this process."""
         config = planner.policy_config
         warm_up(planner)
         self.planner, self.zones, self.rate_hz = planner, zones, rate_hz
@@ -301,7 +302,8 @@ class RealtimeController:
         self._results_lock = threading.Lock()
         self.worker = (BackgroundPlanner(self._plan, self._on_result, noise_seed)
                        if process_threads is None else
-                       PlanningProcess(planner, self._on_result, noise_seed, process_threads))
+                       PlanningProcess(planner, self._on_result, noise_seed, process_threads,
+                                       idle=idle))
 
     # -- inputs ---------------------------------------------------------------------------
 

@@ -37,6 +37,9 @@ from constrained_diffusion_ros.zones.area import RestrictedArea
 
 LOGGER = logging.getLogger(__name__)
 
+STARVED_SHARE = 0.25  # of a core, while planning: below it, idle priority starves the planner
+WATCH_PERIOD_S = 0.5  # how often the node looks at what the planning process gets
+
 
 @dataclass
 class PlanJob:
@@ -80,6 +83,7 @@ class BackgroundPlanner:
                  on_result: Callable[[PlanResult], None], noise_seed: int = 0,
                  niceness: int = 5, name: str = "background_planner") -> None:
         self._plan, self._on_result, self._niceness = plan, on_result, niceness
+        self.priority = f"nice {niceness}"  # how the worker thread is scheduled
         self.generator = torch.Generator().manual_seed(noise_seed)
         self._job: PlanJob | None = None
         self._busy = False
@@ -142,14 +146,29 @@ def _send(connection: Connection, kind: str, payload: object) -> None:
     connection.send_bytes(pickle.dumps((kind, data), protocol=pickle.HIGHEST_PROTOCOL))
 
 
-def serve(descriptor: int, threads: int, niceness: int) -> None:
+def may_leave_idle(niceness: int) -> bool:
+    """Whether this process may take a process back from SCHED_IDLE to normal scheduling at
+    `niceness` (Linux: root, or an RLIMIT_NICE that allows that nice value; CAP_SYS_NICE alone
+    is not detected), and can see what it gets (/proc). Without that, going idle is one way."""
+    if not hasattr(os, "SCHED_IDLE") or not Path("/proc/self/stat").exists():
+        return False
+    if os.geteuid() == 0:
+        return True
+    import resource
+
+    limit = resource.getrlimit(resource.RLIMIT_NICE)[0]
+    return limit == resource.RLIM_INFINITY or limit >= 20 - niceness
+
+
+def serve(descriptor: int, threads: int, niceness: int, idle: bool = False) -> None:
     """The child: plan each job with the planner and generator it was last given, until told
     to stop or the node's end of the socket closes (the node died)."""
     connection = Connection(descriptor)
+    with contextlib.suppress(OSError, AttributeError):
+        os.nice(niceness)  # kept if it goes back from idle to normal scheduling
+        if idle:  # before torch starts threads: they inherit it
+            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
     torch.set_num_threads(threads)
-    if niceness and hasattr(os, "nice"):
-        with contextlib.suppress(OSError):
-            os.nice(niceness)
     policy, planner, zones = None, None, None
     generator = torch.Generator()
     while True:
@@ -180,19 +199,53 @@ def serve(descriptor: int, threads: int, niceness: int) -> None:
                                       time.perf_counter() - began))
 
 
+class CpuShare:
+    """The share of a core a process got while it worked on one job, over `period` s or more
+    (its CPU time against the wall clock's); windows that span two jobs, or time without one,
+    are not judged: between jobs a planner rightly uses nothing."""
+
+    def __init__(self, period: float) -> None:
+        self.period = period
+        self._since: tuple[float, float, object] | None = None  # (wall s, CPU s, job)
+
+    def share(self, now: float, cpu: float | None, job: object | None) -> float | None:
+        """Fed a sample (wall s, CPU s, the job in flight or None); the share since the last
+        sample of the same job at least `period` ago, else None."""
+        since = self._since
+        if job is None or cpu is None:
+            self._since = None
+        elif since is None or since[2] is not job:
+            self._since = (now, cpu, job)
+        elif now - since[0] >= self.period:
+            self._since = (now, cpu, job)
+            return (cpu - since[1]) / (now - since[0])
+        return None
+
+
 class PlanningProcess:
     """Plans one chunk at a time in a child process; results come back on a receiver thread.
 
     `submit` replaces a job not yet sent (only the newest matters); a job goes to the child
     when it is idle, so `reseed` and `use` apply before the next job. `on_result` is called on
-    the receiver thread. The child runs `threads` torch threads at a lower CPU priority, and
-    exits when the node's end of the socket closes, even if the node was killed.
+    the receiver thread. The child runs `threads` torch threads and exits when the node's end
+    of the socket closes, even if the node was killed.
+
+    The child plans at idle priority (SCHED_IDLE) where the node may take it back: any other
+    task that wakes, the middleware's threads and the robot's driver included, runs at once,
+    where at a nice value it would wait out the planner's time slice. A machine kept busy by
+    other work would starve it there; the receiver thread watches, and a child that gets less
+    than `STARVED_SHARE` of a core while planning goes to normal scheduling at `niceness` for
+    good. Elsewhere it plans at `niceness` throughout.
     """
 
     def __init__(self, planner: ConstrainedPlanner,
                  on_result: Callable[[PlanResult], None], noise_seed: int = 0,
-                 threads: int = 1, niceness: int = 5, name: str = "planning_process") -> None:
-        self._on_result = on_result
+                 threads: int = 1, niceness: int = 5, idle: bool = True,
+                 name: str = "planning_process") -> None:
+        self._on_result, self._niceness = on_result, niceness
+        idle = idle and may_leave_idle(niceness)
+        self.priority = "idle" if idle else f"nice {niceness}"  # how the child is scheduled
+        self._starvation = CpuShare(WATCH_PERIOD_S)
         # A plain interpreter on a socket pair, not multiprocessing's spawn: that one would run
         # the caller's main script again in the child; fork is unsafe beside DDS threads.
         ours, theirs = socket.socketpair()
@@ -201,7 +254,7 @@ class PlanningProcess:
                        "PYTHONPATH": os.pathsep.join(
                            filter(None, [package_root, os.environ.get("PYTHONPATH")]))}
         code = (f"from {__name__} import serve; "
-                f"serve({theirs.fileno()}, {threads}, {niceness})")
+                f"serve({theirs.fileno()}, {threads}, {niceness}, {idle})")
         self._process = subprocess.Popen([sys.executable, "-c", code], env=environment,
                                          pass_fds=[theirs.fileno()], stdin=subprocess.DEVNULL)
         theirs.close()
@@ -291,6 +344,10 @@ class PlanningProcess:
     def _receive(self) -> None:
         while True:
             try:
+                ready = self._connection.poll(WATCH_PERIOD_S)
+                self._watch()
+                if not ready:
+                    continue
                 kind, data = pickle.loads(self._connection.recv_bytes())
                 payload, seconds = pickle.loads(data)
             except (EOFError, OSError):
@@ -310,3 +367,33 @@ class PlanningProcess:
                 if self._pending is not None and not self._stopping:
                     self._start(self._pending)
                 self._pending = None
+
+    def _watch(self) -> None:
+        """At idle priority: a child starved by other work goes to normal scheduling."""
+        if self.priority != "idle":
+            return
+        with self._lock:
+            job = self._in_flight
+        share = self._starvation.share(time.monotonic(), self._child_cpu_seconds(), job)
+        if share is not None and share < STARVED_SHARE:
+            self._leave_idle(share)
+
+    def _child_cpu_seconds(self) -> float | None:
+        """CPU time the child has used (all its threads), or None if it cannot be read."""
+        try:
+            fields = Path(f"/proc/{self.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            return None
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime
+
+    def _leave_idle(self, share: float) -> None:
+        threads: list[str] = []
+        with contextlib.suppress(OSError):  # the child is gone: the receiver says so
+            threads = os.listdir(f"/proc/{self.pid}/task")
+        for thread in threads:
+            with contextlib.suppress(OSError):  # a thread that ended meanwhile
+                os.sched_setscheduler(int(thread), os.SCHED_OTHER, os.sched_param(0))
+        self.priority = f"nice {self._niceness}"
+        LOGGER.warning("planning process got %.0f%% of a core at idle priority (the machine "
+                       "is busy): normal scheduling at nice %d from now on", 100 * share,
+                       self._niceness)

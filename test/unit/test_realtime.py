@@ -28,8 +28,10 @@ from constrained_diffusion_ros.planning.realtime import (
 )
 from constrained_diffusion_ros.planning.workers import (
     BackgroundPlanner,
+    CpuShare,
     PlanJob,
     PlanningProcess,
+    may_leave_idle,
     plan_chunk,
 )
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
@@ -167,6 +169,44 @@ def test_the_planning_process_plans_what_the_thread_would_in_a_process_of_its_ow
     assert [r.job.generation for r in results] == [1, 1, 1]
     for result, want in zip(results, [expected[0], expected[1], expected[0]], strict=True):
         np.testing.assert_array_equal(result.chunk, want)
+
+
+def test_cpu_share_judges_only_the_time_spent_on_one_job() -> None:
+    watch, job, other = CpuShare(0.5), object(), object()
+    assert watch.share(0.0, 1.0, job) is None  # the first sample
+    assert watch.share(0.3, 1.1, job) is None  # too soon to judge
+    assert watch.share(0.6, 1.15, job) == pytest.approx(0.25)  # 0.15 s of a core in 0.6 s
+    assert watch.share(1.2, 1.15, other) is None  # another job: a new window
+    assert watch.share(1.4, 1.15, None) is None  # between jobs a planner rightly uses nothing
+    assert watch.share(1.5, 1.15, other) is None  # so the window starts again
+    assert watch.share(2.1, 1.75, other) == pytest.approx(1.0)
+    assert watch.share(2.7, None, other) is None  # unreadable: not judged
+
+
+@pytest.mark.parametrize("idle", [True, False])
+def test_the_planning_process_plans_at_idle_priority_until_it_starves(
+        tiny_policy: DiffusionPolicy, idle: bool) -> None:
+    """Where the node may raise it again, the child plans at SCHED_IDLE; starved, it goes to
+    normal scheduling at nice 5 (all its threads). Elsewhere, or not asked to, it is at nice 5
+    from the start."""
+    done = threading.Semaphore(0)
+    worker = PlanningProcess(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT),
+                             lambda result: done.release(), idle=idle)
+    nice = min(19, os.getpriority(os.PRIO_PROCESS, 0) + 5)
+    threads = Path(f"/proc/{worker.pid}/task")
+    try:
+        worker.submit(PlanJob(1, 0, torch.full((1, 2, 20), 200.0), None, 0, None))
+        assert done.acquire(timeout=60)  # the child has set its scheduling before it planned
+        if idle and may_leave_idle(5):
+            assert worker.priority == "idle"
+            assert os.sched_getscheduler(worker.pid) == os.SCHED_IDLE
+            worker._leave_idle(0.1)  # what the watch does when the share is under the bound
+        assert worker.priority == "nice 5"
+        for thread in threads.iterdir():
+            assert os.sched_getscheduler(int(thread.name)) == os.SCHED_OTHER
+            assert os.getpriority(os.PRIO_PROCESS, int(thread.name)) == nice
+    finally:
+        worker.shutdown()
 
 
 def test_the_planning_process_exits_when_the_node_is_killed(make_tiny_policy, tmp_path) -> None:

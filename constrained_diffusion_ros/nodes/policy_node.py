@@ -122,8 +122,8 @@ PARAMETERS = (
           "holds the interpreter lock that the clock and zone callbacks need; false: in a "
           "thread (a restricted_area plug-in that cannot be pickled needs it)", read_only=True),
     Param("planning_idle", True, "realtime: the planning process at idle priority (SCHED_IDLE: "
-          "whatever else wakes runs first) where the node may raise it again (root or "
-          "RLIMIT_NICE), and at nice 5 for good once it gets under a quarter of a core; false: "
+          "whatever else wakes runs first) where the node may raise it again (CAP_SYS_NICE "
+          "or RLIMIT_NICE), and at nice 5 for good once it gets under a quarter of a core; false: "
           "nice 5 throughout", read_only=True),
     Param("max_zones", DEFAULT_MAX_ZONES, "zones in force at most; more are refused",
           read_only=True, low=1),

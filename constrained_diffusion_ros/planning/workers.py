@@ -147,17 +147,29 @@ def _send(connection: Connection, kind: str, payload: object) -> None:
 
 
 def may_leave_idle(niceness: int) -> bool:
-    """Whether this process may take a process back from SCHED_IDLE to normal scheduling at
-    `niceness` (Linux: root, or an RLIMIT_NICE that allows that nice value; CAP_SYS_NICE alone
-    is not detected), and can see what it gets (/proc). Without that, going idle is one way."""
+    """Whether a task of this process, its nice value raised by `niceness`, may go back from
+    SCHED_IDLE to normal scheduling (Linux allows it with CAP_SYS_NICE, or within RLIMIT_NICE;
+    root in a container often has neither): tried on a thread of its own, which then ends. The
+    child inherits the same rights. Without them going idle would be one way."""
     if not hasattr(os, "SCHED_IDLE") or not Path("/proc/self/stat").exists():
         return False
-    if os.geteuid() == 0:
-        return True
-    import resource
+    allowed: list[bool] = []
 
-    limit = resource.getrlimit(resource.RLIMIT_NICE)[0]
-    return limit == resource.RLIM_INFINITY or limit >= 20 - niceness
+    def probe() -> None:
+        thread = threading.get_native_id()
+        try:
+            os.setpriority(os.PRIO_PROCESS, thread,
+                           os.getpriority(os.PRIO_PROCESS, thread) + niceness)
+            os.sched_setscheduler(thread, os.SCHED_IDLE, os.sched_param(0))
+            os.sched_setscheduler(thread, os.SCHED_OTHER, os.sched_param(0))
+            allowed.append(True)
+        except OSError:
+            allowed.append(False)
+
+    prober = threading.Thread(target=probe, name="scheduling_probe")
+    prober.start()
+    prober.join()
+    return allowed == [True]
 
 
 def serve(descriptor: int, threads: int, niceness: int, idle: bool = False) -> None:
@@ -329,13 +341,15 @@ class PlanningProcess:
         those, and what it derived from them); the caller holds the lock. A job that cannot be
         sent is reported in `error` and dropped (the next one is asked for as usual)."""
         same = job.zones is not None and job.zones is self._sent_zones
+        self._in_flight = job  # already: a send that waits for a starved child counts too
         try:
             _send(self._connection, "job", (replace(job, zones=None) if same else job, same))
         except (OSError, pickle.PicklingError, TypeError, AttributeError) as error:
+            self._in_flight = None
             self._fail(f"cannot send a plan to the planning process: {type(error).__name__}: "
                        f"{error}")
             return
-        self._in_flight, self._sent_zones = job, job.zones
+        self._sent_zones = job.zones
 
     def _fail(self, message: str) -> None:
         self.error, self.errors = RuntimeError(message), self.errors + 1
@@ -372,8 +386,7 @@ class PlanningProcess:
         """At idle priority: a child starved by other work goes to normal scheduling."""
         if self.priority != "idle":
             return
-        with self._lock:
-            job = self._in_flight
+        job = self._in_flight  # without the lock: a send in progress holds it
         share = self._starvation.share(time.monotonic(), self._child_cpu_seconds(), job)
         if share is not None and share < STARVED_SHARE:
             self._leave_idle(share)
@@ -391,8 +404,15 @@ class PlanningProcess:
         with contextlib.suppress(OSError):  # the child is gone: the receiver says so
             threads = os.listdir(f"/proc/{self.pid}/task")
         for thread in threads:
-            with contextlib.suppress(OSError):  # a thread that ended meanwhile
+            try:
                 os.sched_setscheduler(int(thread), os.SCHED_OTHER, os.sched_param(0))
+            except ProcessLookupError:  # a thread that ended meanwhile
+                pass
+            except OSError as error:  # not allowed after all: say so, and stop trying
+                self.priority = "idle (starved: could not leave it)"
+                LOGGER.error("planning process starved at idle priority (%.0f%% of a core) and "
+                             "could not leave it: %s", 100 * share, error)
+                return
         self.priority = f"nice {self._niceness}"
         LOGGER.warning("planning process got %.0f%% of a core at idle priority (the machine "
                        "is busy): normal scheduling at nice %d from now on", 100 * share,

@@ -209,6 +209,23 @@ def test_the_planning_process_plans_at_idle_priority_until_it_starves(
         worker.shutdown()
 
 
+def test_a_starved_planner_that_may_not_leave_idle_priority_says_so(
+        tiny_policy: DiffusionPolicy, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Refused (no CAP_SYS_NICE after all): the status tells the truth and the watch stops."""
+    worker = PlanningProcess(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT),
+                             lambda result: None, idle=False)
+    try:
+        def refuse(*_) -> None:
+            raise PermissionError(1, "Operation not permitted")
+
+        monkeypatch.setattr(os, "sched_setscheduler", refuse)
+        worker._leave_idle(0.02)
+        assert worker.priority == "idle (starved: could not leave it)"
+    finally:
+        monkeypatch.undo()
+        worker.shutdown()
+
+
 def test_the_planning_process_exits_when_the_node_is_killed(make_tiny_policy, tmp_path) -> None:
     """SIGKILL to the node's process: its end of the socket closes with it, and the child,
     reading it, exits instead of lingering."""

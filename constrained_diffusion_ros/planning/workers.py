@@ -233,6 +233,11 @@ class CpuShare:
             return (cpu - since[1]) / (now - since[0])
         return None
 
+    def starved(self, now: float, cpu: float | None, job: object | None) -> float | None:
+        """`share`, when it is under `STARVED_SHARE` (a planner starved); else None."""
+        share = self.share(now, cpu, job)
+        return share if share is not None and share < STARVED_SHARE else None
+
 
 class PlanningProcess:
     """Plans one chunk at a time in a child process; results come back on a receiver thread.
@@ -387,8 +392,8 @@ class PlanningProcess:
         if self.priority != "idle":
             return
         job = self._in_flight  # without the lock: a send in progress holds it
-        share = self._starvation.share(time.monotonic(), self._child_cpu_seconds(), job)
-        if share is not None and share < STARVED_SHARE:
+        share = self._starvation.starved(time.monotonic(), self._child_cpu_seconds(), job)
+        if share is not None:
             self._leave_idle(share)
 
     def _child_cpu_seconds(self) -> float | None:

@@ -27,6 +27,7 @@ from constrained_diffusion_ros.planning.realtime import (
     warm_up,
 )
 from constrained_diffusion_ros.planning.workers import (
+    STARVED_SHARE,
     BackgroundPlanner,
     CpuShare,
     PlanJob,
@@ -181,6 +182,15 @@ def test_cpu_share_judges_only_the_time_spent_on_one_job() -> None:
     assert watch.share(1.5, 1.15, other) is None  # so the window starts again
     assert watch.share(2.1, 1.75, other) == pytest.approx(1.0)
     assert watch.share(2.7, None, other) is None  # unreadable: not judged
+
+
+def test_cpu_share_calls_a_planner_starved_under_a_quarter_of_a_core() -> None:
+    watch, job = CpuShare(0.5), object()
+    assert STARVED_SHARE == 0.25
+    assert watch.starved(0.0, 0.0, job) is None
+    assert watch.starved(1.0, 0.5, job) is None  # half a core: slow, not starved
+    assert watch.starved(2.0, 0.75, job) is None  # the bound itself is enough
+    assert watch.starved(3.0, 0.875, job) == 0.125
 
 
 @pytest.mark.parametrize("idle", [True, False])

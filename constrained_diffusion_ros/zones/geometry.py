@@ -335,7 +335,9 @@ class ZoneSet(RestrictedArea):
         Each such point goes to the nearest of a few candidates that are clear (checked after
         rounding to the input dtype), which guarantees nothing is left inside:
         - the exact one-step projection, nearest boundary point + `margin` outward (at a notch
-          tip, along the notch): right wherever one edge or corner decides the answer;
+          tip, along the notch): right wherever one edge or corner decides the answer; when it
+          is clear and no longer than any move to that clearance can be, it is the answer
+          (up to rounding) and the others are not computed;
         - `passes` projections onto the boundary of the area inflated by `margin` (arcs
           circumscribed, so ~0.01% of `margin` too far, more at sharp notches), then an exact step
           out of the original area to absorb shapely's buffer approximations: these solve
@@ -479,8 +481,18 @@ class ZoneSet(RestrictedArea):
         """The nearest clear candidate for points (N, 2) closer than margin (see project_out)."""
         eps = 16 * max(torch.finfo(dtype).eps, torch.finfo(p.dtype).eps) * (self._scale + margin)
         clearance = margin + eps
+        signed, _, nearest, step = self._query(p)
+        one_step = torch.where((signed < clearance)[..., None], nearest + clearance * step, p)
+        # Reaching clearance `margin` takes a move of at least `margin` - distance (a distance
+        # changes by at most the length moved): a clear one-step projection no longer than
+        # that is the nearest clear point up to rounding, and needs no other candidate.
+        shortest = (one_step - p).norm(dim=-1) <= clearance + eps - signed
+        done = shortest & (self._signed(one_step.to(dtype).to(p.dtype)) >= margin)
+        if done.all():
+            return one_step
+        out, p = one_step, p[~done]
         grown = self._inflated_for(margin)
-        candidates, x = [self._push(p, clearance)], p
+        candidates, x = [one_step[~done]], p
         for _ in range(passes):
             x = self._push(grown._push(x, eps), clearance)
             candidates.append(x)
@@ -490,7 +502,8 @@ class ZoneSet(RestrictedArea):
         clear[-1] = True  # the box exit is clear by construction
         cost = torch.where(clear, (stack - p).norm(dim=-1), torch.inf)
         best = cost.argmin(dim=0)
-        return stack[best, torch.arange(len(p), device=p.device)]
+        out[~done] = stack[best, torch.arange(len(p), device=p.device)]
+        return out
 
     def _inflated_for(self, margin: float) -> ZoneSet:
         """The area grown so its polygonal arcs stay >= margin away from this one (cached)."""

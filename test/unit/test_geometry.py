@@ -126,6 +126,17 @@ def test_project_out_escapes_a_gap_narrower_than_twice_the_margin() -> None:
     )
 
 
+def test_project_out_derives_the_grown_area_only_where_one_edge_does_not_decide() -> None:
+    """A point one edge decides takes the one-step projection (as short as a move can be);
+    only a gap narrower than twice the margin needs the candidates on the grown area."""
+    zones = ZoneSet.from_polygons([rectangle(0, 0, 100, 100), rectangle(110, 0, 200, 100)])
+    moved = zones.project_out(torch.tensor([[50.0, 90.0]]), margin=15.0)
+    torch.testing.assert_close(moved, torch.tensor([[50.0, 115.0]]), atol=1e-3, rtol=0)
+    assert ("fine", 15.0) not in zones.__dict__.get("_derived_areas", {})
+    zones.project_out(torch.tensor([[105.0, 90.0]]), margin=15.0)
+    assert ("fine", 15.0) in zones._derived_areas
+
+
 def test_segment_clear_fraction_and_crosses() -> None:
     zones = ZoneSet.from_polygons([rectangle(100, 100, 200, 200)])
     starts = torch.tensor([[0.0, 150.0], [0.0, 50.0], [150.0, 150.0], [0.0, 150.0], [0.0, 100.0]])

@@ -116,6 +116,9 @@ class Condition:
     # the client's executor took it)
     reacted_delivered: list[float] = field(default_factory=list)
     in_node: list[float] = field(default_factory=list)  # s, the node's zone_to_setpoint_ms
+    # s, every setpoint: the client's callback after its middleware received it (what this
+    # client's own executor adds to "received")
+    callback_delays: list[float] = field(default_factory=list)
     inside_after: int = 0
     overlap_steps: int = 0
     overlap_px: float = 0.0  # the deepest overlap of the disc
@@ -146,6 +149,7 @@ class Client:
         self.setpoints: list[tuple[float, np.ndarray]] = []
         self.published: list[float] = []  # s, the policy's own clock when it sent each setpoint
         self.delivered: list[float] = []  # s, when the client's middleware received each one
+        self.called: list[float] = []  # s, the same clock, when the callback ran
         self.pushers: list[tuple[float, int, np.ndarray]] = []
         self.plan: np.ndarray | None = None
         self.plan_time = 0.0
@@ -183,6 +187,7 @@ class Client:
         self.setpoints.append((time.monotonic(), point_of(msg)))
         self.published.append(info["source_timestamp"] * 1e-9)
         self.delivered.append(info["received_timestamp"] * 1e-9)
+        self.called.append(time.time())
 
     def _on_plan(self, msg) -> None:
         self.plan, self.plan_time = path_of(msg), time.monotonic()
@@ -412,6 +417,8 @@ def report(name: str, result: Condition, nominal: float) -> None:
           f"{ms(np.array(result.reacted_sent))}; to when the client's middleware received it "
           f"(its reception timestamp): {ms(np.array(result.reacted_delivered))}; inside the "
           f"node (zone callback -> sent): {ms(np.array(result.in_node))}")
+    print(f"    the client's own executor: its callback after its middleware had a setpoint "
+          f"(every setpoint): {ms(np.array(result.callback_delays))}")
     print(f"    setpoints within the pusher radius of the zone after that (0.5 px tolerance): "
           f"{result.inside_after}; steps with the pusher's disc in the zone: "
           f"{result.overlap_steps}" + (f" (deepest {result.overlap_px:.2f} px)"
@@ -477,6 +484,7 @@ def run_condition(args: argparse.Namespace, loaded: bool) -> None:
                     print(".", end="", flush=True)
                 print()
                 steal, total = cpu_times() - before
+                result.callback_delays = list(np.subtract(client.called, client.delivered))
                 report(configuration, result, 1.0 / args.rate_hz)
                 print(f"    CPU time taken by the hypervisor (steal) during the trials: "
                       f"{100 * steal / max(total, 1):.1f}%")

@@ -474,15 +474,18 @@ class ZoneSet(RestrictedArea):
 
     def _push(self, p: Tensor, clearance: float) -> Tensor:
         """One projection step: points with signed distance < clearance moved out to it."""
+        return self._push_and_distance(p, clearance)[0]
+
+    def _push_and_distance(self, p: Tensor, clearance: float) -> tuple[Tensor, Tensor]:
+        """`_push`, and the signed distance of the points it started from."""
         sd, _, nearest, step = self._query(p)
-        return torch.where((sd < clearance)[..., None], nearest + clearance * step, p)
+        return torch.where((sd < clearance)[..., None], nearest + clearance * step, p), sd
 
     def _clear(self, p: Tensor, margin: float, dtype: torch.dtype, passes: int) -> Tensor:
         """The nearest clear candidate for points (N, 2) closer than margin (see project_out)."""
         eps = 16 * max(torch.finfo(dtype).eps, torch.finfo(p.dtype).eps) * (self._scale + margin)
         clearance = margin + eps
-        signed, _, nearest, step = self._query(p)
-        one_step = torch.where((signed < clearance)[..., None], nearest + clearance * step, p)
+        one_step, signed = self._push_and_distance(p, clearance)
         # Reaching clearance `margin` takes a move of at least `margin` - distance (a distance
         # changes by at most the length moved): a clear one-step projection no longer than
         # that is the nearest clear point up to rounding, and needs no other candidate.

@@ -12,7 +12,8 @@ the policy run, drop a square zone on the waypoints the plan in force is about t
   - the time from publishing a zone to the first moment the setpoint in force respects it
     (outside the zone grown by the pusher radius), over all trials and over the trials where
     the node changed its setpoint for the zone (its `zone_reactions` count rose), as the
-    client's callback got it, as its middleware received it, as the policy sent it, and inside
+    client's callback got it (setpoints are taken on a thread of the client's own, as a robot
+    driver would take them), as its middleware received it, as the policy sent it, and inside
     the node;
   - setpoints within the pusher radius of the zone after that moment, and steps where the
     pusher's disc overlaps the zone (placed so that it starts outside);
@@ -32,10 +33,12 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import shapely
@@ -126,8 +129,23 @@ class Condition:
     skipped: int = 0  # no place for a zone the disc was outside of
 
 
+class Setpoint(NamedTuple):
+    """A setpoint as the client got it; times in s."""
+
+    received: float  # time.monotonic() when the client's callback ran
+    point: np.ndarray  # (2,)
+    sent: float  # the policy's clock (wall time) when it published it: its source timestamp
+    delivered: float  # the same clock, when the client's middleware received it
+    called: float  # the same clock, when the client's callback ran
+
+
 class Client:
-    """The benchmark's own rclpy node: observes the topics, drops zones, resets the sim."""
+    """The benchmark's own rclpy node: observes the topics, drops zones, resets the sim.
+
+    Setpoints are taken on a thread of their own (a second node with its own executor), as a
+    robot driver would take them: they do not wait behind this client's bookkeeping of plans,
+    markers and diagnostics on the main thread.
+    """
 
     def __init__(self, domain_id: int, children: NodeProcesses) -> None:
         import rclpy
@@ -146,10 +164,7 @@ class Client:
         self.node = rclpy.create_node("bench_realtime", namespace=NAMESPACE, context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
-        self.setpoints: list[tuple[float, np.ndarray]] = []
-        self.published: list[float] = []  # s, the policy's own clock when it sent each setpoint
-        self.delivered: list[float] = []  # s, when the client's middleware received each one
-        self.called: list[float] = []  # s, the same clock, when the callback ran
+        self.setpoints: list[Setpoint] = []  # appended by the listener thread only
         self.pushers: list[tuple[float, int, np.ndarray]] = []
         self.plan: np.ndarray | None = None
         self.plan_time = 0.0
@@ -162,7 +177,17 @@ class Client:
             self.node.create_subscription(msg_type, TOPICS[key].name, callback,
                                           qos_profile(TOPICS[key]))
 
-        subscribe("setpoint", PointStamped, self._on_setpoint)
+        # The listener thread waits at most this long for the interpreter lock (default 5 ms).
+        sys.setswitchinterval(0.0002)
+        self.listener = rclpy.create_node("bench_realtime_setpoints", namespace=NAMESPACE,
+                                          context=self.context)
+        self.listener.create_subscription(PointStamped, TOPICS["setpoint"].name,
+                                          self._on_setpoint, qos_profile(TOPICS["setpoint"]))
+        self.listener_executor = SingleThreadedExecutor(context=self.context)
+        self.listener_executor.add_node(self.listener)
+        self.listener_thread = threading.Thread(target=self.listener_executor.spin,
+                                                name="setpoints", daemon=True)
+        self.listener_thread.start()
         subscribe("pusher", PointStamped, lambda m: self.pushers.append(
             (time.monotonic(), step_of_stamp(m.header.stamp, CONTROL_HZ), point_of(m))))
         subscribe("plan", PathMsg, self._on_plan)
@@ -179,15 +204,15 @@ class Client:
     def discovered(self) -> bool:
         node = self.node
         return (self.reset.service_is_ready() and self.sim_parameters.services_are_ready()
-                and all(s.get_publisher_count() >= 1 for s in node.subscriptions)
+                and all(s.get_publisher_count() >= 1
+                        for s in (*node.subscriptions, *self.listener.subscriptions))
                 and self.zones.get_subscription_count() >= 1
                 and node.count_subscribers(TOPICS["pusher"].name) >= 2)
 
     def _on_setpoint(self, msg, info: dict) -> None:
-        self.setpoints.append((time.monotonic(), point_of(msg)))
-        self.published.append(info["source_timestamp"] * 1e-9)
-        self.delivered.append(info["received_timestamp"] * 1e-9)
-        self.called.append(time.time())
+        self.setpoints.append(Setpoint(time.monotonic(), point_of(msg),
+                                       info["source_timestamp"] * 1e-9,
+                                       info["received_timestamp"] * 1e-9, time.time()))
 
     def _on_plan(self, msg) -> None:
         self.plan, self.plan_time = path_of(msg), time.monotonic()
@@ -231,7 +256,10 @@ class Client:
     def close(self) -> None:
         import rclpy
 
+        self.listener_executor.shutdown()
+        self.listener_thread.join(timeout=5.0)
         self.executor.shutdown()
+        self.listener.destroy_node()
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
 
@@ -271,10 +299,9 @@ def respects(shape: shapely.Polygon, point: np.ndarray) -> bool:
 def periods_between(client: Client, start: float, stop: float) -> tuple[list[float], list[float]]:
     """Setpoint periods in a window of arrival times: as the client received them, and as the
     policy sent them (the publisher's own timestamps, free of the client's scheduling)."""
-    chosen = [i for i, (t, _) in enumerate(client.setpoints) if start <= t <= stop]
-    received = [client.setpoints[i][0] for i in chosen]
-    sent = [client.published[i] for i in chosen]
-    return list(np.diff(received)), list(np.diff(sent))
+    chosen = [s for s in list(client.setpoints) if start <= s.received <= stop]
+    return (list(np.diff([s.received for s in chosen])),
+            list(np.diff([s.sent for s in chosen])))
 
 
 def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
@@ -282,11 +309,11 @@ def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
     client.reset_to(seed)
     begin = time.monotonic()
     client.spin_until(lambda: client.plan is not None and client.plan_time > begin
-                      and client.setpoints and client.setpoints[-1][0] > begin,
+                      and client.setpoints and client.setpoints[-1].received > begin,
                       60.0, "a plan after the reset")
     client.spin_for(args.warmup)
     for _ in range(LOOKS):  # the pusher may be held or near the plan's end: look again
-        held = client.setpoints[-1][1]
+        held = client.setpoints[-1].point
         (_, step_before, before), (_, step, pusher) = client.pushers[-2:]
         moved = (pusher - before) / max(1, step - step_before)
         vertices = zone_in_path(client.plan, held, pusher, moved, args.zone_size)
@@ -302,12 +329,12 @@ def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
     published, published_wall = time.monotonic(), time.time()
     client.publish_zone(1000 + index, vertices)
     client.spin_for(args.watch)  # (the diagnostics come every 0.5 s: the reaction is in)
-    after = client.setpoints[n_setpoints:]
+    after = client.setpoints[n_setpoints:]  # a copy: the listener keeps appending
     # The node reacted if it changed its held setpoint because of the zone (its own count);
     # else the setpoint it held when the zone came already respected it.
     reacted = int(client.status.get("zone_reactions", 0)) > reactions
-    first_index = next((i for i, (_, p) in enumerate(after) if respects(shape, p)), None)
-    first = None if first_index is None else after[first_index][0]
+    first_index = next((i for i, s in enumerate(after) if respects(shape, s.point)), None)
+    first = None if first_index is None else after[first_index].received
     if not reacted and respects(shape, held):
         first = published
     result.trials += 1
@@ -315,13 +342,13 @@ def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
     result.latencies.append(latency)
     if reacted:
         result.reacted.append(latency)
-        for stamps, kept in ((client.published, result.reacted_sent),
-                             (client.delivered, result.reacted_delivered)):
+        for stamp, kept in (("sent", result.reacted_sent),
+                            ("delivered", result.reacted_delivered)):
             kept.append(float("inf") if first_index is None
-                        else stamps[n_setpoints + first_index] - published_wall)
+                        else getattr(after[first_index], stamp) - published_wall)
         result.in_node.append(float(client.status.get("zone_to_setpoint_ms", "nan")) / 1000)
-    result.inside_after += sum(not respects(shape, p) for t, p in after
-                               if first is not None and t > first)
+    result.inside_after += sum(not respects(shape, s.point) for s in after
+                               if first is not None and s.received > first)
     depths = [AGENT_RADIUS - shape.distance(shapely.Point(*p))
               for _, _, p in client.pushers[n_pushers:]]
     result.overlap_steps += sum(depth > 0 for depth in depths)
@@ -484,7 +511,7 @@ def run_condition(args: argparse.Namespace, loaded: bool) -> None:
                     print(".", end="", flush=True)
                 print()
                 steal, total = cpu_times() - before
-                result.callback_delays = list(np.subtract(client.called, client.delivered))
+                result.callback_delays = [s.called - s.delivered for s in client.setpoints]
                 report(configuration, result, 1.0 / args.rate_hz)
                 print(f"    CPU time taken by the hypervisor (steal) during the trials: "
                       f"{100 * steal / max(total, 1):.1f}%")

@@ -172,6 +172,13 @@ def may_leave_idle(niceness: int) -> bool:
     return allowed == [True]
 
 
+def scheduling(pid: int = 0) -> str:
+    """How a process (0: this one) is scheduled: "idle" (SCHED_IDLE) or "nice <n>"."""
+    if hasattr(os, "SCHED_IDLE") and os.sched_getscheduler(pid) == os.SCHED_IDLE:
+        return "idle"
+    return f"nice {os.getpriority(os.PRIO_PROCESS, pid)}"
+
+
 def serve(descriptor: int, threads: int, niceness: int, idle: bool = False) -> None:
     """The child: plan each job with the planner and generator it was last given, until told
     to stop or the node's end of the socket closes (the node died)."""
@@ -180,6 +187,7 @@ def serve(descriptor: int, threads: int, niceness: int, idle: bool = False) -> N
         os.nice(niceness)  # kept if it goes back from idle to normal scheduling
         if idle:  # before torch starts threads: they inherit it
             os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    _send(connection, "scheduling", (scheduling(), 0.0))  # what it got, not what was asked
     torch.set_num_threads(threads)
     policy, planner, zones = None, None, None
     generator = torch.Generator()
@@ -252,7 +260,8 @@ class PlanningProcess:
     where at a nice value it would wait out the planner's time slice. A machine kept busy by
     other work would starve it there; the receiver thread watches, and a child that gets less
     than `STARVED_SHARE` of a core while planning goes to normal scheduling at `niceness` for
-    good. Elsewhere it plans at `niceness` throughout.
+    good. Elsewhere it plans at `niceness` throughout. `priority` says how the child is
+    scheduled as the child itself reports it ("starting" until its report comes).
     """
 
     def __init__(self, planner: ConstrainedPlanner,
@@ -261,7 +270,7 @@ class PlanningProcess:
                  name: str = "planning_process") -> None:
         self._on_result, self._niceness = on_result, niceness
         idle = idle and may_leave_idle(niceness)
-        self.priority = "idle" if idle else f"nice {niceness}"  # how the child is scheduled
+        self.priority = "starting"  # how the child is scheduled, as it reports it
         self._starvation = CpuShare(WATCH_PERIOD_S)
         # A plain interpreter on a socket pair, not multiprocessing's spawn: that one would run
         # the caller's main script again in the child; fork is unsafe beside DDS threads.
@@ -375,6 +384,9 @@ class PlanningProcess:
                         self._in_flight = self._pending = None
                     self._fail(f"the planning process exited (code {self._process.wait()})")
                 return
+            if kind == "scheduling":
+                self.priority = payload
+                continue
             if kind != "chunk":
                 self._fail(payload)
                 if kind == "error":
@@ -418,7 +430,8 @@ class PlanningProcess:
                 LOGGER.error("planning process starved at idle priority (%.0f%% of a core) and "
                              "could not leave it: %s", 100 * share, error)
                 return
-        self.priority = f"nice {self._niceness}"
+        with contextlib.suppress(OSError):
+            self.priority = scheduling(self.pid)
         LOGGER.warning("planning process got %.0f%% of a core at idle priority (the machine "
-                       "is busy): normal scheduling at nice %d from now on", 100 * share,
-                       self._niceness)
+                       "is busy): normal scheduling (%s) from now on", 100 * share,
+                       self.priority)

@@ -516,7 +516,8 @@ def run_condition(args: argparse.Namespace, loaded: bool) -> None:
                 print(f"    CPU time taken by the hypervisor (steal) during the trials: "
                       f"{100 * steal / max(total, 1):.1f}%")
                 print("    node: " + ", ".join(f"{key} {client.status.get(key, '?')}" for key in (
-                    "planning_ms", "plans", "plans_dropped", "held_steps", "ticks_missed",
+                    "planning_ms", "plans", "plans_dropped", "plans_cancelled", "held_steps",
+                    "ticks_missed",
                     "tick_late_p99_ms", "clock_realtime", "executor_realtime",
                     "planning_priority")))
                 if index == 0 and args.flood_hz > 0:

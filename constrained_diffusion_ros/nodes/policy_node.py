@@ -474,6 +474,7 @@ class PolicyNode(Node):
         if self.controller is not None:
             stats = self.controller.stats
             values.update(plans=stats.plans_installed, plans_dropped=stats.plans_dropped,
+                          plans_cancelled=self.controller.worker.cancelled,
                           waypoints_skipped=self.controller.queue.skipped,
                           held_steps=stats.held_steps, zone_reactions=stats.zone_reactions,
                           lead=self.controller.lead, ticks=self.clock.ticks,

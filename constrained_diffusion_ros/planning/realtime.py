@@ -292,6 +292,10 @@ class RealtimeController:
         self.fixed_lead, self.soft, self.noise_seed, self.wake = lead, soft, noise_seed, wake
         self.queue = ActionQueue(1, config.n_action_steps)
         self.generation = 0
+        # The plan asked for when zones or the configuration made the one in flight worthless
+        # (that one was stopped), until it arrives: later changes do not stop it in turn, or a
+        # zone re-published on every frame would stop every plan.
+        self.replan: PlanJob | None = None
         self.observations: dict[int, np.ndarray] = {}
         self.step: int | None = None  # the newest observation's control step
         self.setpoint: np.ndarray | None = None  # (2,) shielded last, what `tick` sends;
@@ -323,6 +327,7 @@ class RealtimeController:
 
     def new_episode(self) -> None:
         self.generation += 1
+        self.replan = None
         self.queue.clear()
         self.observations.clear()
         self.step, self.setpoint = None, None
@@ -337,8 +342,9 @@ class RealtimeController:
         if isinstance(self.worker, PlanningProcess):
             self.worker.use(planner)
         self.generation += 1
+        self.replan = None
         if self.step is not None:
-            self._ask(prefix=False)
+            self._ask(prefix=False, replan=True)
 
     @property
     def lead(self) -> int:
@@ -365,8 +371,9 @@ class RealtimeController:
     def zones_changed(self, send: Callable[[np.ndarray], None] = lambda _: None
                       ) -> np.ndarray | None:
         """Zones changed: the held setpoint is shielded again and, if that changed it, the safe
-        one returned and given to `send` at once, before anything else; then a replan is asked
-        for if the rest of the chunk is where the planner keeps waypoints out of."""
+        one returned and given to `send` at once, before anything else; then, if the rest of
+        the chunk is where the planner keeps waypoints out of, the plan in flight is stopped
+        and a replan asked for."""
         if self.step is None:
             return None
         before = self.setpoint
@@ -376,7 +383,7 @@ class RealtimeController:
             self.stats.zone_reactions += 1
             send(after)
         if self._rest_entered():
-            self._ask(prefix=False)
+            self._ask(prefix=False, replan=True)
         else:
             self._ask_if_running_out()
         return after if changed else None
@@ -401,6 +408,8 @@ class RealtimeController:
             return None
         for result in results:
             job = result.job
+            if job is self.replan:
+                self.replan = None
             self.plan_seconds = (result.seconds if self.plan_seconds == 0.0
                                  else 0.7 * self.plan_seconds + 0.3 * result.seconds)
             self.stats.last_plan_ms = 1000 * result.seconds
@@ -454,19 +463,24 @@ class RealtimeController:
             frames.append(self.observations.get(step, frames[-1] if frames else latest))
         return torch.from_numpy(np.stack(frames)[None])
 
-    def _ask(self, prefix: bool) -> None:
-        """Submit a plan from the newest observations (replacing any not yet started)."""
+    def _ask(self, prefix: bool, replan: bool = False) -> None:
+        """Submit a plan from the newest observations (replacing any not yet started); a
+        `replan` also stops the plan in flight, unless that is a replan itself."""
         committed = None
         if prefix and self.soft >= 0:
             committed = committed_prefix(self.queue, np.array([0]), self.step, self.lead,
                                          self.soft, self.first_executed)
         self.stats.plans_asked += 1
-        self.worker.submit(PlanJob(self.generation, self.step, self._history(),
-                                   self.zones.area_at(self.step),
-                                   self.zones.version_at(self.step), committed))
+        job = PlanJob(self.generation, self.step, self._history(),
+                      self.zones.area_at(self.step), self.zones.version_at(self.step), committed)
+        cancel = replan and self.replan is None
+        if replan:
+            self.replan = job
+        self.worker.submit(job, cancel)
 
-    def _plan(self, job: PlanJob, generator: torch.Generator) -> np.ndarray:
-        return plan_chunk(self.planner, job, generator)
+    def _plan(self, job: PlanJob, generator: torch.Generator,
+              interrupt: Callable[[], bool]) -> np.ndarray:
+        return plan_chunk(self.planner, job, generator, interrupt)
 
     def _on_result(self, result: PlanResult) -> None:
         with self._results_lock:

@@ -33,6 +33,7 @@ import torch
 
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.sampling.hooks import CommittedPrefix
+from constrained_diffusion_ros.sampling.sampler import Interrupted
 from constrained_diffusion_ros.zones.area import RestrictedArea
 
 LOGGER = logging.getLogger(__name__)
@@ -60,18 +61,20 @@ class PlanResult:
     seconds: float
 
 
-def plan_chunk(planner: ConstrainedPlanner, job: PlanJob, generator: torch.Generator
-               ) -> np.ndarray:
+def plan_chunk(planner: ConstrainedPlanner, job: PlanJob, generator: torch.Generator,
+               interrupt: Callable[[], bool] = lambda: False) -> np.ndarray:
     """(horizon - first_executed, 2) the executed part of a chunk planned for `job` and the
-    rest of the horizon after it."""
-    chunk = planner.plan(job.observations, job.zones, None, generator, job.prefix)
+    rest of the horizon after it; raises `Interrupted` once `interrupt()` is true."""
+    with planner.sampler.interruptible(interrupt):
+        chunk = planner.plan(job.observations, job.zones, None, generator, job.prefix)
     return chunk[0, planner.policy_config.first_executed:].numpy().astype(float)
 
 
 class BackgroundPlanner:
     """A worker thread that plans one chunk at a time, off the control thread.
 
-    `submit` replaces any job not yet started (only the newest request matters); a result is
+    `submit` replaces any job not yet started (only the newest request matters), and with
+    `cancel` stops the one in flight before its next denoising step; a result is
     offered to `on_result` with its job, whose generation the owner compares with its own to
     drop plans that a zone or configuration change made stale. The worker draws from its own
     random generator and runs at a lower CPU priority than the process's other threads, so the
@@ -79,7 +82,8 @@ class BackgroundPlanner:
     `shutdown()` stops and joins it.
     """
 
-    def __init__(self, plan: Callable[[PlanJob, torch.Generator], np.ndarray],
+    def __init__(self, plan: Callable[[PlanJob, torch.Generator, Callable[[], bool]],
+                                      np.ndarray],
                  on_result: Callable[[PlanResult], None], noise_seed: int = 0,
                  niceness: int = 5, name: str = "background_planner") -> None:
         self._plan, self._on_result, self._niceness = plan, on_result, niceness
@@ -89,8 +93,10 @@ class BackgroundPlanner:
         self._busy = False
         self._stopping = False
         self._wake = threading.Condition()
+        self._cancel = threading.Event()  # the plan in flight is no longer wanted
         self.error: BaseException | None = None  # the last fault
         self.errors = 0  # faults so far
+        self.cancelled = 0  # plans stopped in flight
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
@@ -100,9 +106,11 @@ class BackgroundPlanner:
         with self._wake:
             return self._busy or self._job is not None
 
-    def submit(self, job: PlanJob) -> None:
+    def submit(self, job: PlanJob, cancel: bool = False) -> None:
         with self._wake:
             self._job = job
+            if cancel and self._busy:
+                self._cancel.set()
             self._wake.notify()
 
     def reseed(self, noise_seed: int) -> None:
@@ -127,10 +135,13 @@ class BackgroundPlanner:
                 if self._stopping:
                     return
                 job, self._job, self._busy = self._job, None, True
+                self._cancel.clear()
             try:
                 began = time.perf_counter()
-                chunk = self._plan(job, self.generator)
+                chunk = self._plan(job, self.generator, self._cancel.is_set)
                 self._on_result(PlanResult(job, chunk, time.perf_counter() - began))
+            except Interrupted:
+                self.cancelled += 1
             except Exception as error:  # reported by the owner; the worker keeps serving
                 self.error, self.errors = error, self.errors + 1
                 LOGGER.exception("planning failed")
@@ -211,8 +222,13 @@ def serve(descriptor: int, threads: int, niceness: int, idle: bool = False) -> N
                 job, same_zones = payload
                 job = replace(job, zones=zones) if same_zones else job
                 zones = job.zones
-                _send(connection, "chunk", (plan_chunk(planner, job, generator),
+                # Any message while it plans makes the plan worthless (the node sends a job
+                # only to an idle child): "cancel", a new seed or planner, "stop".
+                _send(connection, "chunk", (plan_chunk(planner, job, generator, connection.poll),
                                             time.perf_counter() - began))
+            # "cancel": the plan it stopped is answered already
+        except Interrupted:
+            _send(connection, "cancelled", (None, time.perf_counter() - began))
         except Exception as error:
             reply = "job_error" if kind == "job" else "error"  # only a job's reply ends it
             _send(connection, reply, (f"{type(error).__name__}: {error}",
@@ -250,10 +266,11 @@ class CpuShare:
 class PlanningProcess:
     """Plans one chunk at a time in a child process; results come back on a receiver thread.
 
-    `submit` replaces a job not yet sent (only the newest matters); a job goes to the child
-    when it is idle, so `reseed` and `use` apply before the next job. `on_result` is called on
-    the receiver thread. The child runs `threads` torch threads and exits when the node's end
-    of the socket closes, even if the node was killed.
+    `submit` replaces a job not yet sent (only the newest matters), and with `cancel` stops the
+    one in flight; a job goes to the child when it is idle, so `reseed` and `use` apply before
+    the next job (they stop the one in flight too: it was for the old episode or planner).
+    `on_result` is called on the receiver thread. The child runs `threads` torch threads and
+    exits when the node's end of the socket closes, even if the node was killed.
 
     The child plans at idle priority (SCHED_IDLE) where the node may take it back: any other
     task that wakes, the middleware's threads and the robot's driver included, runs at once,
@@ -291,6 +308,7 @@ class PlanningProcess:
         self._sent_zones: RestrictedArea | None = None
         self.error: BaseException | None = None  # the last fault
         self.errors = 0  # faults so far
+        self.cancelled = 0  # plans stopped in flight
         self._stopping = False
         with self._lock:  # the weights once (they wait for the child to start reading)
             _send(self._connection, "policy", planner.policy)
@@ -310,14 +328,16 @@ class PlanningProcess:
         with self._lock:
             return self._in_flight is not None or self._pending is not None
 
-    def submit(self, job: PlanJob) -> None:
+    def submit(self, job: PlanJob, cancel: bool = False) -> None:
         with self._lock:
             if self.error is not None and not self._process_alive():
                 return  # nothing plans any more: the node reports `error`
             if self._in_flight is None:
                 self._start(job)
-            else:
-                self._pending = job
+                return
+            self._pending = job
+            if cancel:  # under the lock: it reaches the child before the pending job can
+                self._tell_locked("cancel", None)
 
     def _process_alive(self) -> bool:
         return self._process.poll() is None
@@ -333,10 +353,13 @@ class PlanningProcess:
 
     def _tell(self, kind: str, payload: object) -> None:
         with self._lock:
-            try:
-                _send(self._connection, kind, payload)
-            except OSError as error:  # the child is gone: said once, by the receiver
-                self._fail(f"planning process gone: {error}")
+            self._tell_locked(kind, payload)
+
+    def _tell_locked(self, kind: str, payload: object) -> None:
+        try:
+            _send(self._connection, kind, payload)
+        except OSError as error:  # the child is gone: said once, by the receiver
+            self._fail(f"planning process gone: {error}")
 
     def shutdown(self, timeout: float = 5.0) -> None:
         self._stopping = True
@@ -387,12 +410,15 @@ class PlanningProcess:
             if kind == "scheduling":
                 self.priority = payload
                 continue
-            if kind != "chunk":
+            if kind == "chunk":
+                if not self._stopping:
+                    self._on_result(PlanResult(self._in_flight, np.asarray(payload), seconds))
+            elif kind == "cancelled":
+                self.cancelled += 1
+            else:
                 self._fail(payload)
                 if kind == "error":
                     continue  # a configuration or seed that failed: no job ended
-            elif not self._stopping:
-                self._on_result(PlanResult(self._in_flight, np.asarray(payload), seconds))
             with self._lock:  # not busy until the result is handed over
                 self._in_flight = None
                 if self._pending is not None and not self._stopping:

@@ -7,7 +7,8 @@ training, evaluation and the ROS node all sample through it.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import contextlib
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -57,6 +58,10 @@ class SampleHook(Protocol):
         ...
 
 
+class Interrupted(Exception):
+    """A sample stopped before its end: its result was no longer wanted."""
+
+
 class DenoisingSampler:
     """Draws action chunks from a policy with DDPM (the reference) or DDIM (fewer steps)."""
 
@@ -74,6 +79,18 @@ class DenoisingSampler:
             raise ValueError(f"num_inference_steps must be in [1, "
                              f"{policy.config.num_train_timesteps}], got {num_inference_steps}")
         self.scheduler.set_timesteps(self.num_inference_steps)
+        self._interrupt: Callable[[], bool] | None = None
+
+    @contextlib.contextmanager
+    def interruptible(self, interrupt: Callable[[], bool]) -> Iterator[None]:
+        """Within the block `interrupt()` is asked before each denoising step, and True stops
+        the sample with `Interrupted`: a planning worker's plan in flight that a zone or a new
+        configuration made worthless ends at once rather than after its last step."""
+        self._interrupt = interrupt
+        try:
+            yield
+        finally:
+            self._interrupt = None
 
     @torch.no_grad()
     def sample(self, obs_history: torch.Tensor, generator: torch.Generator | None = None,
@@ -86,6 +103,9 @@ class DenoisingSampler:
         sample = torch.randn(shape, generator=generator).to(device)
         timesteps = self.scheduler.timesteps
         for index, timestep in enumerate(timesteps):
+            if self._interrupt is not None and self._interrupt():
+                raise Interrupted(f"stopped before denoising step {index + 1} of "
+                                  f"{len(timesteps)}")
             noise = self.policy.unet(sample, timestep.to(device), cond)
             sample = self.scheduler.step(noise, timestep, sample, generator=generator,
                                          **self.step_options).prev_sample

@@ -4,10 +4,15 @@ plan, the background planner's thread, and the executor with an inference delay.
 from __future__ import annotations
 
 import os
+import pickle
+import socket
+import struct
 import subprocess
 import sys
 import threading
+from multiprocessing.connection import Connection
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -32,13 +37,17 @@ from constrained_diffusion_ros.planning.workers import (
     CpuShare,
     PlanJob,
     PlanningProcess,
+    PlanResult,
+    _send,
     may_leave_idle,
     plan_chunk,
     scheduling,
+    serve,
 )
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.weights import save_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
+from constrained_diffusion_ros.sampling.sampler import Interrupted
 from constrained_diffusion_ros.zones import LiveZones, rectangle
 
 
@@ -85,7 +94,7 @@ def test_the_committed_prefix_is_the_chunk_in_force_at_the_steps_before_the_plan
 def test_the_background_planner_plans_the_newest_job_on_its_own_thread() -> None:
     release, started, results, threads = threading.Event(), threading.Event(), [], []
 
-    def plan(job: PlanJob, generator: torch.Generator) -> np.ndarray:
+    def plan(job: PlanJob, generator: torch.Generator, interrupt) -> np.ndarray:
         threads.append(threading.get_ident())
         started.set()
         release.wait(5)
@@ -110,10 +119,109 @@ def test_the_background_planner_plans_the_newest_job_on_its_own_thread() -> None
     assert not worker._thread.is_alive()
 
 
+def test_the_background_planner_stops_the_plan_in_flight_when_asked() -> None:
+    """`submit(cancel=True)`: the plan in flight ends at its next check (a 10 s plan here),
+    is not offered, and the new job is planned at once."""
+    started, results, done = threading.Event(), [], threading.Semaphore(0)
+
+    def plan(job: PlanJob, generator: torch.Generator, interrupt) -> np.ndarray:
+        started.set()
+        for _ in range(1000 if job.generation == 1 else 0):
+            if interrupt():
+                raise Interrupted("stopped")
+            threading.Event().wait(0.01)
+        return np.full((16, 2), float(job.generation))
+
+    worker = BackgroundPlanner(plan, lambda r: (results.append(r), done.release()))
+    try:
+        worker.submit(PlanJob(1, 0, torch.zeros(1, 2, 20), None, 0, None))
+        assert started.wait(5)
+        worker.submit(PlanJob(2, 0, torch.zeros(1, 2, 20), None, 0, None), cancel=True)
+        assert done.acquire(timeout=5)  # long before the first plan would have ended
+        assert [r.job.generation for r in results] == [2] and worker.cancelled == 1
+        assert worker.error is None
+    finally:
+        worker.shutdown()
+
+
+def test_the_planning_child_answers_a_stopped_plan_and_plans_the_next(
+        tiny_policy: DiffusionPolicy) -> None:
+    """The child's loop: a job with a message waiting behind it (here "cancel") stops before
+    its first denoising step and is answered "cancelled"; the next job is planned."""
+    ours, theirs = socket.socketpair()
+    node = Connection(ours.detach())
+    job = PlanJob(1, 0, torch.full((1, 2, 20), 200.0), None, 0, None)
+    threads = torch.get_num_threads()
+    child = threading.Thread(target=serve, args=(theirs.detach(), 1, 0))  # closes its end
+    child.start()
+    try:
+        for kind, payload in (("policy", tiny_policy), ("planner", (SAFE, PUSHT_ROBOT)),
+                              ("seed", 0)):
+            _send(node, kind, payload)
+        # The job and "cancel" in one write, framed as Connection.send_bytes frames a message
+        # (a 4-byte big-endian length): "cancel" is there before the child reads the job.
+        frames = b"".join(struct.pack("!i", len(m)) + m for m in (
+            pickle.dumps(("job", pickle.dumps((job, False)))),
+            pickle.dumps(("cancel", pickle.dumps(None)))))
+        with socket.socket(fileno=os.dup(node.fileno())) as raw:
+            raw.sendall(frames)
+        replies = []
+        while len(replies) < 2 and node.poll(30):
+            replies.append(pickle.loads(node.recv_bytes())[0])
+        _send(node, "job", (job, False))  # nothing behind it: planned to the end
+        assert node.poll(30)
+        kind, data = pickle.loads(node.recv_bytes())
+        assert replies == ["scheduling", "cancelled"] and kind == "chunk"
+        assert np.isfinite(pickle.loads(data)[0]).all()
+    finally:
+        _send(node, "stop", None)
+        child.join(30)
+        node.close()
+        torch.set_num_threads(threads)  # the child's loop set this process's
+
+
+def test_a_zone_change_stops_the_plan_in_flight_once_until_the_replan_arrives(
+        tiny_policy: DiffusionPolicy) -> None:
+    """The first zone change that puts the rest of the chunk in a zone stops the plan in
+    flight; those that follow while its replan is out do not stop the replan (a zone
+    re-published on every frame would stop every plan); once it arrives, the next may."""
+    zones = LiveZones()
+    controller = RealtimeController(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT), zones,
+                                    rate_hz=10.0, lead=1)
+    worker = controller.worker
+    try:
+        controller.observe(0, observation_with_pusher(200, 200))
+        installed(controller)
+        submitted: list[tuple[PlanJob, bool]] = []
+        controller.worker = SimpleNamespace(busy=True, submit=lambda job, cancel=False:
+                                            submitted.append((job, cancel)))
+        chunk = controller.queue.waypoints[0].copy()
+        rest = controller.queue.upcoming(np.array([0]), 0,
+                                         int(controller.queue.remaining(0)[0]))[0]
+        assert len(rest) >= 6
+
+        def zone_on(zone_id: int, waypoint: np.ndarray) -> None:
+            x, y = waypoint
+            zones.upsert(zone_id, rectangle(x - 2, y - 2, x + 2, y + 2), now=0.0)
+            controller.zones_changed()
+
+        for zone_id in (1, 2, 3):  # each on a waypoint still to come
+            zone_on(zone_id, rest[zone_id])
+        assert [cancel for _, cancel in submitted] == [True, False, False]
+        controller._on_result(PlanResult(submitted[-1][0], chunk, 0.1))  # the replan arrives
+        controller.install_results()
+        assert controller.stats.plans_installed == 2
+        zone_on(4, rest[5])
+        assert submitted[-1][1] is True
+    finally:
+        controller.worker = worker
+        controller.shutdown()
+
+
 def test_a_planning_error_is_kept_and_the_worker_keeps_serving() -> None:
     calls, done, failed = [], threading.Semaphore(0), threading.Event()
 
-    def plan(job: PlanJob, generator: torch.Generator) -> np.ndarray:
+    def plan(job: PlanJob, generator: torch.Generator, interrupt) -> np.ndarray:
         calls.append(job.generation)
         if job.generation == 1:
             failed.set()
@@ -420,9 +528,9 @@ def test_warming_up_leaves_the_planner_as_a_fresh_one(tiny_policy: DiffusionPoli
                                                    step), expected)
 
 
-def test_a_new_configuration_drops_the_plan_in_flight(tiny_policy: DiffusionPolicy) -> None:
+def test_a_new_configuration_stops_the_plan_in_flight(tiny_policy: DiffusionPolicy) -> None:
     """The first configuration's plan is held in flight until the configuration has changed:
-    its result is dropped (generation counter) and the new configuration's plan goes in."""
+    it stops before its first denoising step, and the new configuration's plan goes in."""
     old, started, release = held_planner(tiny_policy)
     controller = RealtimeController(old, LiveZones(), rate_hz=10.0, lead=1)
     try:
@@ -433,7 +541,27 @@ def test_a_new_configuration_drops_the_plan_in_flight(tiny_policy: DiffusionPoli
         release.set()
         installed(controller)
         stats = controller.stats
-        assert (stats.plans_asked, stats.plans_dropped, stats.plans_installed) == (2, 1, 1)
+        assert (stats.plans_asked, stats.plans_dropped, stats.plans_installed) == (2, 0, 1)
+        assert controller.worker.cancelled == 1
+    finally:
+        controller.shutdown()
+
+
+def test_a_plan_from_before_a_new_episode_is_dropped(tiny_policy: DiffusionPolicy) -> None:
+    """A plan that ends after a new episode began (an earlier step came) is not installed:
+    its generation is the old one."""
+    planner, started, release = held_planner(tiny_policy)
+    controller = RealtimeController(planner, LiveZones(), rate_hz=10.0, lead=1)
+    try:
+        controller.observe(5, observation_with_pusher(100, 100))
+        assert started.wait(5)
+        controller.observe(0, observation_with_pusher(300, 300))  # the sim was reset
+        release.set()
+        installed(controller)
+        stats = controller.stats
+        # dropped, and the new episode's plan asked for (not installed yet)
+        assert (stats.plans_asked, stats.plans_dropped, stats.plans_installed) == (2, 1, 0)
+        np.testing.assert_allclose(controller.tick(), [300, 300])  # held, not the old plan
     finally:
         controller.shutdown()
 

@@ -13,7 +13,11 @@ from constrained_diffusion_ros.sampling.hooks import (
     FinalProjection,
     prefix_weights,
 )
-from constrained_diffusion_ros.sampling.sampler import DenoisingSampler, DenoisingStep
+from constrained_diffusion_ros.sampling.sampler import (
+    DenoisingSampler,
+    DenoisingStep,
+    Interrupted,
+)
 
 # -- Through the sampler -------------------------------------------------------------------------
 
@@ -26,6 +30,29 @@ def test_final_projection_through_the_sampler_keeps_every_waypoint_out(
     out = sampler.sample(obs, torch.Generator().manual_seed(0), hooks=[FinalProjection(CENTRE)])
     assert out.shape == (8, 16, 2)
     assert not CENTRE.contains(out).any()
+
+
+def test_an_interrupted_sample_stops_before_the_next_step_and_else_is_unchanged(
+        tiny_policy: DiffusionPolicy) -> None:
+    """`interrupt` is asked before each denoising step: true, the sample stops there (no
+    more network calls); never true, the sample is the plain one, bit for bit."""
+    sampler, obs = DenoisingSampler(tiny_policy, "ddim", 5), observations(2)
+    plain = sampler.sample(obs, torch.Generator().manual_seed(0))
+    steps: list[int] = []
+
+    def count(sample: torch.Tensor, step: DenoisingStep) -> torch.Tensor:
+        steps.append(step.index)
+        return sample
+
+    with sampler.interruptible(lambda: len(steps) == 3), pytest.raises(Interrupted):
+        sampler.sample(obs, torch.Generator().manual_seed(0), [count])
+    assert steps == [0, 1, 2]
+    with sampler.interruptible(lambda: False):
+        kept = sampler.sample(obs, torch.Generator().manual_seed(0))
+    torch.testing.assert_close(kept, plain, rtol=0, atol=0)
+    steps.clear()  # outside the block nothing is asked
+    sampler.sample(obs, torch.Generator().manual_seed(0), [count])
+    assert steps == [0, 1, 2, 3, 4]
 
 
 def test_hooks_see_workspace_pixels_once_per_denoising_step(tiny_policy: DiffusionPolicy) -> None:

@@ -17,6 +17,7 @@ the policy run, drop a square zone on the waypoints the plan in force is about t
     the node;
   - setpoints within the pusher radius of the zone after that moment, and steps where the
     pusher's disc overlaps the zone (placed so that it starts outside);
+  - the time from publishing a zone to the next plan the client receives;
 then a 1 kHz zone flood (zones in force = last message per id how soon after it ends; the period
 p99 against the same run without a flood), and `trial` under load. "loaded" means one busy
 process per `--load` core, started and stopped by this script. Prints; asserts nothing.
@@ -119,6 +120,7 @@ class Condition:
     # the client's executor took it)
     reacted_delivered: list[float] = field(default_factory=list)
     in_node: list[float] = field(default_factory=list)  # s, the node's zone_to_setpoint_ms
+    replans: list[float] = field(default_factory=list)  # s, zone published -> next plan received
     # s, every setpoint: the client's callback after its middleware received it (what this
     # client's own executor adds to "received")
     callback_delays: list[float] = field(default_factory=list)
@@ -168,6 +170,7 @@ class Client:
         self.pushers: list[tuple[float, int, np.ndarray]] = []
         self.plan: np.ndarray | None = None
         self.plan_time = 0.0
+        self.plan_times: list[float] = []  # time.monotonic() of every plan received
         # When the client got the last markers (monotonic s), when the policy sent them (its
         # clock, s), and the union of the zones they show.
         self.markers: tuple[float, float, shapely.Geometry] | None = None
@@ -216,6 +219,7 @@ class Client:
 
     def _on_plan(self, msg) -> None:
         self.plan, self.plan_time = path_of(msg), time.monotonic()
+        self.plan_times.append(self.plan_time)
 
     def _on_markers(self, msg, info: dict) -> None:
         polygons = [shapely.Polygon([(p.x, p.y) for p in m.points[:-1]])
@@ -338,6 +342,8 @@ def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
     if not reacted and respects(shape, held):
         first = published
     result.trials += 1
+    result.replans.append(next((t for t in client.plan_times if t > published), float("inf"))
+                          - published)
     latency = float("inf") if first is None else first - published
     result.latencies.append(latency)
     if reacted:
@@ -444,6 +450,8 @@ def report(name: str, result: Condition, nominal: float) -> None:
           f"{ms(np.array(result.reacted_sent))}; to when the client's middleware received it "
           f"(its reception timestamp): {ms(np.array(result.reacted_delivered))}; inside the "
           f"node (zone callback -> sent): {ms(np.array(result.in_node))}")
+    print(f"    zone published -> the next plan received (every trial; a replan if the rest "
+          f"of the chunk entered the zone): {ms(np.array(result.replans))}")
     print(f"    the client's own executor: its callback after its middleware had a setpoint "
           f"(every setpoint): {ms(np.array(result.callback_delays))}")
     print(f"    setpoints within the pusher radius of the zone after that (0.5 px tolerance): "

@@ -372,8 +372,8 @@ class RealtimeController:
                       ) -> np.ndarray | None:
         """Zones changed: the held setpoint is shielded again and, if that changed it, the safe
         one returned and given to `send` at once, before anything else; then, if the rest of
-        the chunk is where the planner keeps waypoints out of, the plan in flight is stopped
-        and a replan asked for."""
+        the chunk is where the planner keeps waypoints out of, a replan is asked for and the
+        plan in flight stopped (unless that is a replan already)."""
         if self.step is None:
             return None
         before = self.setpoint

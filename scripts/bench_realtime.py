@@ -64,7 +64,10 @@ from sim_bridge import AGENT_RADIUS, CONTROL_HZ  # noqa: E402
 
 FIRST_SEED = 100000
 MAX_ATTEMPTS = 4  # scenes tried per trial asked for, at most
-LOOKS = 4  # looks for room for the zone in a scene, 0.5 s apart, before it is skipped
+# Looks for room for the zone in a scene, one per control period for 2 s, before it is skipped:
+# with DDPM the pusher spends most of its time held at the end of a chunk (a plan takes longer
+# than a chunk lasts), and only just after a plan is installed are there waypoints ahead of it.
+LOOKS = 20
 FLOOD_IDS = 30  # ids cycled by the flood (the node's cap is 32)
 # The pusher's PD law over one control step: per physics substep, its (position, velocity) as
 # weights of (position, velocity, setpoint) at the step's start, per axis.
@@ -323,7 +326,7 @@ def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
         vertices = zone_in_path(client.plan, held, pusher, moved, args.zone_size)
         if vertices is not None:
             break
-        client.spin_for(0.5)
+        client.spin_for(1.0 / args.rate_hz)
     else:
         result.skipped += 1
         return

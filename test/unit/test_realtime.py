@@ -180,6 +180,24 @@ def test_the_planning_child_answers_a_stopped_plan_and_plans_the_next(
         torch.set_num_threads(threads)  # the child's loop set this process's
 
 
+def test_the_planning_process_stops_the_plan_in_flight_and_plans_the_pending_one(
+        tiny_policy: DiffusionPolicy) -> None:
+    """`submit(cancel=True)` while a plan is in flight (100 DDPM steps, about 0.3 s here):
+    that plan is answered "cancelled" and never offered; the new job is planned and offered."""
+    results, done = [], threading.Semaphore(0)
+    slow = ConstraintConfig("slow", sampler="ddpm", denoising_steps=100)
+    worker = PlanningProcess(ConstrainedPlanner(tiny_policy, slow, PUSHT_ROBOT),
+                             lambda result: (results.append(result), done.release()))
+    try:
+        worker.submit(PlanJob(1, 0, torch.full((1, 2, 20), 200.0), None, 0, None))
+        worker.submit(PlanJob(2, 0, torch.full((1, 2, 20), 200.0), None, 0, None), cancel=True)
+        assert done.acquire(timeout=60)
+        assert [r.job.generation for r in results] == [2] and worker.cancelled == 1
+        assert worker.error is None
+    finally:
+        worker.shutdown()
+
+
 def test_a_zone_change_stops_the_plan_in_flight_once_until_the_replan_arrives(
         tiny_policy: DiffusionPolicy) -> None:
     """The first zone change that puts the rest of the chunk in a zone stops the plan in

@@ -371,9 +371,11 @@ class RealtimeController:
     def zones_changed(self, send: Callable[[np.ndarray], None] = lambda _: None
                       ) -> np.ndarray | None:
         """Zones changed: the held setpoint is shielded again and, if that changed it, the safe
-        one returned and given to `send` at once, before anything else; then, if the rest of
-        the chunk is where the planner keeps waypoints out of, a replan is asked for and the
-        plan in flight stopped (unless that is a replan already)."""
+        one returned and given to `send` at once, before anything else; then, if that moved it
+        or the rest of the chunk is where the planner keeps waypoints out of, a replan is asked
+        for and the plan in flight stopped (unless that is a replan already): it was planned
+        for zones and a setpoint that no longer hold. A pusher held at the end of its chunk has
+        no rest of the chunk, so only the first test catches a zone on its way."""
         if self.step is None:
             return None
         before = self.setpoint
@@ -382,7 +384,7 @@ class RealtimeController:
         if changed:
             self.stats.zone_reactions += 1
             send(after)
-        if self._rest_entered():
+        if changed or self._rest_entered():
             self._ask(prefix=False, replan=True)
         else:
             self._ask_if_running_out()

@@ -236,6 +236,34 @@ def test_a_zone_change_stops_the_plan_in_flight_once_until_the_replan_arrives(
         controller.shutdown()
 
 
+def test_a_zone_that_moves_the_held_setpoint_stops_the_plan_in_flight(
+        tiny_policy: DiffusionPolicy) -> None:
+    """The pusher held at the end of its chunk has no rest of the chunk for a zone to enter;
+    a zone on its setpoint still stops the plan in flight (planned for what no longer holds)."""
+    zones = LiveZones()
+    controller = RealtimeController(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT), zones,
+                                    rate_hz=10.0, lead=1)
+    worker = controller.worker
+    try:
+        controller.observe(0, observation_with_pusher(200, 200))
+        installed(controller)
+        submitted: list[tuple[PlanJob, bool]] = []
+        controller.worker = SimpleNamespace(busy=True, submit=lambda job, cancel=False:
+                                            submitted.append((job, cancel)))
+        step = 0
+        while controller.queue.remaining(step)[0] > 0:  # the chunk runs out
+            step += 1
+            held = controller.observe(step, observation_with_pusher(200, 200))
+        assert not controller._rest_entered() and not submitted
+        x, y = held
+        zones.upsert(1, rectangle(x - 5, y - 5, x + 5, y + 5), now=0.0)
+        assert controller.zones_changed() is not None  # the held setpoint moved
+        assert [cancel for _, cancel in submitted] == [True]
+    finally:
+        controller.worker = worker
+        controller.shutdown()
+
+
 def test_a_planning_error_is_kept_and_the_worker_keeps_serving() -> None:
     calls, done, failed = [], threading.Semaphore(0), threading.Event()
 

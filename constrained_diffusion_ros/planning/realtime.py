@@ -371,11 +371,12 @@ class RealtimeController:
     def zones_changed(self, send: Callable[[np.ndarray], None] = lambda _: None
                       ) -> np.ndarray | None:
         """Zones changed: the held setpoint is shielded again and, if that changed it, the safe
-        one returned and given to `send` at once, before anything else; then, if that moved it
-        or the rest of the chunk is where the planner keeps waypoints out of, a replan is asked
-        for and the plan in flight stopped (unless that is a replan already): it was planned
-        for zones and a setpoint that no longer hold. A pusher held at the end of its chunk has
-        no rest of the chunk, so only the first test catches a zone on its way."""
+        one returned and given to `send` at once, before anything else; then, if the setpoint
+        held before or the rest of the chunk is where the planner keeps waypoints out of now, a
+        replan is asked for and the plan in flight stopped (unless that is a replan already):
+        it was planned for zones that no longer hold. A pusher held at the end of its chunk has
+        no rest of the chunk, so only the first test catches a zone on its way; a zone removed
+        stops nothing (what was planned around it is still safe)."""
         if self.step is None:
             return None
         before = self.setpoint
@@ -384,7 +385,7 @@ class RealtimeController:
         if changed:
             self.stats.zone_reactions += 1
             send(after)
-        if changed or self._rest_entered():
+        if (changed and self._violates(before[None, None])) or self._rest_entered():
             self._ask(prefix=False, replan=True)
         else:
             self._ask_if_running_out()

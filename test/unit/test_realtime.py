@@ -239,7 +239,8 @@ def test_a_zone_change_stops_the_plan_in_flight_once_until_the_replan_arrives(
 def test_a_zone_that_moves_the_held_setpoint_stops_the_plan_in_flight(
         tiny_policy: DiffusionPolicy) -> None:
     """The pusher held at the end of its chunk has no rest of the chunk for a zone to enter;
-    a zone on its setpoint still stops the plan in flight (planned for what no longer holds)."""
+    a zone on its setpoint still stops the plan in flight (planned for what no longer holds).
+    Removing that zone moves the setpoint back and stops nothing."""
     zones = LiveZones()
     controller = RealtimeController(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT), zones,
                                     rate_hz=10.0, lead=1)
@@ -259,6 +260,10 @@ def test_a_zone_that_moves_the_held_setpoint_stops_the_plan_in_flight(
         zones.upsert(1, rectangle(x - 5, y - 5, x + 5, y + 5), now=0.0)
         assert controller.zones_changed() is not None  # the held setpoint moved
         assert [cancel for _, cancel in submitted] == [True]
+        controller.replan = None  # as if the replan had arrived
+        zones.remove(1)
+        np.testing.assert_array_equal(controller.zones_changed(), held)  # back, nothing asked
+        assert len(submitted) == 1
     finally:
         controller.worker = worker
         controller.shutdown()

@@ -128,6 +128,8 @@ class Condition:
     # client's own executor adds to "received")
     callback_delays: list[float] = field(default_factory=list)
     inside_after: int = 0
+    inside_zone: int = 0  # of those, in the zone itself
+    nearest_after: float = float("inf")  # px, the closest of them came to the zone
     overlap_steps: int = 0
     overlap_px: float = 0.0  # the deepest overlap of the disc
     trials: int = 0
@@ -356,8 +358,11 @@ def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
             kept.append(float("inf") if first_index is None
                         else getattr(after[first_index], stamp) - published_wall)
         result.in_node.append(float(client.status.get("zone_to_setpoint_ms", "nan")) / 1000)
-    result.inside_after += sum(not respects(shape, s.point) for s in after
-                               if first is not None and s.received > first)
+    later = [s.point for s in after if first is not None and s.received > first]
+    result.inside_after += sum(not respects(shape, p) for p in later)
+    result.inside_zone += sum(shape.contains(shapely.Point(*p)) for p in later)
+    result.nearest_after = min([result.nearest_after,
+                                *(shape.distance(shapely.Point(*p)) for p in later)])
     depths = [AGENT_RADIUS - shape.distance(shapely.Point(*p))
               for _, _, p in client.pushers[n_pushers:]]
     result.overlap_steps += sum(depth > 0 for depth in depths)
@@ -458,7 +463,8 @@ def report(name: str, result: Condition, nominal: float) -> None:
     print(f"    the client's own executor: its callback after its middleware had a setpoint "
           f"(every setpoint): {ms(np.array(result.callback_delays))}")
     print(f"    setpoints within the pusher radius of the zone after that (0.5 px tolerance): "
-          f"{result.inside_after}; steps with the pusher's disc in the zone: "
+          f"{result.inside_after} ({result.inside_zone} in the zone itself; the nearest "
+          f"{result.nearest_after:.2f} px from it); steps with the pusher's disc in the zone: "
           f"{result.overlap_steps}" + (f" (deepest {result.overlap_px:.2f} px)"
                                        if result.overlap_steps else ""))
 

@@ -3,6 +3,7 @@ plan, the background planner's thread, and the executor with an inference delay.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import pickle
 import socket
@@ -10,6 +11,7 @@ import struct
 import subprocess
 import sys
 import threading
+from collections.abc import Iterator
 from multiprocessing.connection import Connection
 from pathlib import Path
 from types import SimpleNamespace
@@ -198,13 +200,12 @@ def test_the_planning_process_stops_the_plan_in_flight_and_plans_the_pending_one
         worker.shutdown()
 
 
-def test_a_zone_change_stops_the_plan_in_flight_once_until_the_replan_arrives(
-        tiny_policy: DiffusionPolicy) -> None:
-    """The first zone change that puts the rest of the chunk in a zone stops the plan in
-    flight; those that follow while its replan is out do not stop the replan (a zone
-    re-published on every frame would stop every plan); once it arrives, the next may."""
-    zones = LiveZones()
-    controller = RealtimeController(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT), zones,
+@contextlib.contextmanager
+def submits_recorded(policy: DiffusionPolicy, zones: LiveZones
+                     ) -> Iterator[tuple[RealtimeController, list[tuple[PlanJob, bool]]]]:
+    """A controller with its first chunk installed, whose worker from then on only records
+    what is submitted, (job, cancel), as if a plan were always in flight."""
+    controller = RealtimeController(ConstrainedPlanner(policy, SAFE, PUSHT_ROBOT), zones,
                                     rate_hz=10.0, lead=1)
     worker = controller.worker
     try:
@@ -213,6 +214,19 @@ def test_a_zone_change_stops_the_plan_in_flight_once_until_the_replan_arrives(
         submitted: list[tuple[PlanJob, bool]] = []
         controller.worker = SimpleNamespace(busy=True, submit=lambda job, cancel=False:
                                             submitted.append((job, cancel)))
+        yield controller, submitted
+    finally:
+        controller.worker = worker
+        controller.shutdown()
+
+
+def test_a_zone_change_stops_the_plan_in_flight_once_until_the_replan_arrives(
+        tiny_policy: DiffusionPolicy) -> None:
+    """The first zone change that puts the rest of the chunk in a zone stops the plan in
+    flight; those that follow while its replan is out do not stop the replan (a zone
+    re-published on every frame would stop every plan); once it arrives, the next may."""
+    zones = LiveZones()
+    with submits_recorded(tiny_policy, zones) as (controller, submitted):
         chunk = controller.queue.waypoints[0].copy()
         rest = controller.queue.upcoming(np.array([0]), 0,
                                          int(controller.queue.remaining(0)[0]))[0]
@@ -231,9 +245,6 @@ def test_a_zone_change_stops_the_plan_in_flight_once_until_the_replan_arrives(
         assert controller.stats.plans_installed == 2
         zone_on(4, rest[5])
         assert submitted[-1][1] is True
-    finally:
-        controller.worker = worker
-        controller.shutdown()
 
 
 def test_a_zone_that_moves_the_held_setpoint_stops_the_plan_in_flight(
@@ -242,15 +253,7 @@ def test_a_zone_that_moves_the_held_setpoint_stops_the_plan_in_flight(
     a zone on its setpoint still stops the plan in flight (planned for what no longer holds).
     Removing that zone moves the setpoint back and stops nothing."""
     zones = LiveZones()
-    controller = RealtimeController(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT), zones,
-                                    rate_hz=10.0, lead=1)
-    worker = controller.worker
-    try:
-        controller.observe(0, observation_with_pusher(200, 200))
-        installed(controller)
-        submitted: list[tuple[PlanJob, bool]] = []
-        controller.worker = SimpleNamespace(busy=True, submit=lambda job, cancel=False:
-                                            submitted.append((job, cancel)))
+    with submits_recorded(tiny_policy, zones) as (controller, submitted):
         step = 0
         while controller.queue.remaining(step)[0] > 0:  # the chunk runs out
             step += 1
@@ -264,9 +267,6 @@ def test_a_zone_that_moves_the_held_setpoint_stops_the_plan_in_flight(
         zones.remove(1)
         np.testing.assert_array_equal(controller.zones_changed(), held)  # back, nothing asked
         assert len(submitted) == 1
-    finally:
-        controller.worker = worker
-        controller.shutdown()
 
 
 def test_a_planning_error_is_kept_and_the_worker_keeps_serving() -> None:

@@ -247,6 +247,29 @@ def test_a_zone_change_stops_the_plan_in_flight_once_until_the_replan_arrives(
         assert submitted[-1][1] is True
 
 
+def test_a_stopped_plan_that_arrives_anyway_is_dropped_without_asking_again(
+        tiny_policy: DiffusionPolicy) -> None:
+    """A plan that ends as its stop is sent still arrives. It enters the new zone, so it is
+    dropped; the replan already asked for covers it, so no other plan is asked. A plan
+    dropped with no replan coming asks for one."""
+    zones = LiveZones()
+    with submits_recorded(tiny_policy, zones) as (controller, submitted):
+        chunk = controller.queue.waypoints[0].copy()
+        controller._ask(prefix=False)  # the plan in flight, before the zone
+        x, y = controller.queue.upcoming(np.array([0]), 0, 2)[0, 1]
+        zones.upsert(1, rectangle(x - 2, y - 2, x + 2, y + 2), now=0.0)
+        controller.zones_changed()
+        (stopped, _), (replan, cancel) = submitted
+        assert cancel and controller.replan is replan
+        controller._on_result(PlanResult(stopped, chunk, 0.1))  # its stop came too late
+        controller.install_results()
+        assert controller.stats.plans_dropped == 1 and len(submitted) == 2
+        zones.upsert(2, rectangle(x - 3, y - 3, x + 3, y + 3), now=0.0)  # after the replan
+        controller._on_result(PlanResult(replan, chunk, 0.1))
+        controller.install_results()
+        assert controller.stats.plans_dropped == 2 and len(submitted) == 3
+
+
 def test_a_zone_that_moves_the_held_setpoint_stops_the_plan_in_flight(
         tiny_policy: DiffusionPolicy) -> None:
     """The pusher held at the end of its chunk has no rest of the chunk for a zone to enter;

@@ -317,15 +317,20 @@ class RealtimeController:
         starts a new episode. Returns the setpoint for this step (also held for `tick`)."""
         if self.step is not None and step < self.step:
             self.new_episode()
+        first = self.step is None
         self.observations[step] = np.asarray(observation, dtype=np.float32)
         for old in [s for s in self.observations if s <= step - self.n_obs_steps]:
             del self.observations[old]
         self.step = step
+        if first:  # the episode's first plan, at once: one from an earlier episode is stopped
+            self._ask(prefix=False, replan=True)
         if np.isnan(self.queue.at(step)[0]).any():
             self.stats.held_steps += 1
         return self._update()
 
     def new_episode(self) -> None:
+        """The last episode is forgotten: its chunks, observations and the shield's history;
+        the noise is reseeded and the plan in flight stopped (the next observation asks)."""
         self.generation += 1
         self.replan = None
         self.queue.clear()

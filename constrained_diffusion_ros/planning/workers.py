@@ -90,6 +90,7 @@ class BackgroundPlanner:
         self.priority = f"nice {niceness}"  # how the worker thread is scheduled
         self.generator = torch.Generator().manual_seed(noise_seed)
         self._job: PlanJob | None = None
+        self._seed: int | None = None  # to apply before the next job
         self._busy = False
         self._stopping = False
         self._wake = threading.Condition()
@@ -114,9 +115,13 @@ class BackgroundPlanner:
             self._wake.notify()
 
     def reseed(self, noise_seed: int) -> None:
-        """A new episode: the same noise as a fresh node (applied before the next job)."""
+        """A new episode: the same noise as a fresh node, from the next job on. The plan in
+        flight (worthless now) is stopped; it draws from the generator until then, so the
+        seed waits for the worker to take the next job."""
         with self._wake:
-            self.generator.manual_seed(noise_seed)
+            self._seed = noise_seed
+            if self._busy:
+                self._cancel.set()
 
     def shutdown(self, timeout: float = 5.0) -> None:
         with self._wake:
@@ -136,6 +141,9 @@ class BackgroundPlanner:
                     return
                 job, self._job, self._busy = self._job, None, True
                 self._cancel.clear()
+                if self._seed is not None:
+                    self.generator.manual_seed(self._seed)
+                    self._seed = None
             try:
                 began = time.perf_counter()
                 chunk = self._plan(job, self.generator, self._cancel.is_set)
@@ -348,7 +356,8 @@ class PlanningProcess:
         self._tell("planner", (planner.config, planner.robot))
 
     def reseed(self, noise_seed: int) -> None:
-        """A new episode: the same noise as a fresh node (applied before the next job)."""
+        """A new episode: the same noise as a fresh node from the next job on (like any
+        message, it stops the plan in flight)."""
         self._tell("seed", noise_seed)
 
     def _tell(self, kind: str, payload: object) -> None:

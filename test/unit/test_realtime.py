@@ -146,6 +146,35 @@ def test_the_background_planner_stops_the_plan_in_flight_when_asked() -> None:
         worker.shutdown()
 
 
+def test_the_background_planner_reseeds_from_the_next_job_and_stops_the_one_in_flight() -> None:
+    """A new episode while a plan draws noise: that plan is stopped, and the next draws what a
+    fresh worker would, however much the stopped one drew after the reseed."""
+    started, release, results, done = threading.Event(), threading.Event(), [], \
+        threading.Semaphore(0)
+
+    def plan(job: PlanJob, generator: torch.Generator, interrupt) -> np.ndarray:
+        started.set()
+        release.wait(5)
+        noise = torch.rand(16, 2, generator=generator).numpy()
+        if interrupt():
+            raise Interrupted("stopped")
+        return noise
+
+    worker = BackgroundPlanner(plan, lambda r: (results.append(r), done.release()))
+    try:
+        worker.submit(PlanJob(1, 0, torch.zeros(1, 2, 20), None, 0, None))
+        assert started.wait(5)
+        worker.reseed(7)
+        worker.submit(PlanJob(2, 0, torch.zeros(1, 2, 20), None, 0, None))
+        release.set()
+        assert done.acquire(timeout=5)
+        assert [r.job.generation for r in results] == [2] and worker.cancelled == 1
+        fresh = torch.rand(16, 2, generator=torch.Generator().manual_seed(7)).numpy()
+        np.testing.assert_array_equal(results[0].chunk, fresh)
+    finally:
+        worker.shutdown()
+
+
 def test_the_planning_child_answers_a_stopped_plan_and_plans_the_next(
         tiny_policy: DiffusionPolicy) -> None:
     """The child's loop: a job with a message waiting behind it (here "cancel") stops before
@@ -621,21 +650,27 @@ def test_a_new_configuration_stops_the_plan_in_flight(tiny_policy: DiffusionPoli
         controller.shutdown()
 
 
-def test_a_plan_from_before_a_new_episode_is_dropped(tiny_policy: DiffusionPolicy) -> None:
-    """A plan that ends after a new episode began (an earlier step came) is not installed:
-    its generation is the old one."""
+def test_a_new_episode_stops_the_plan_in_flight_and_never_installs_one_from_before(
+        tiny_policy: DiffusionPolicy) -> None:
+    """The simulator resets (an earlier step comes) while a plan is in flight: that plan is
+    stopped and the new episode's first plan asked at once. One from before that ends anyway
+    (its stop came too late) is dropped: its generation is the old one."""
     planner, started, release = held_planner(tiny_policy)
     controller = RealtimeController(planner, LiveZones(), rate_hz=10.0, lead=1)
     try:
         controller.observe(5, observation_with_pusher(100, 100))
         assert started.wait(5)
         controller.observe(0, observation_with_pusher(300, 300))  # the sim was reset
+        np.testing.assert_allclose(controller.tick(), [300, 300])  # held, nothing from before
         release.set()
         installed(controller)
         stats = controller.stats
-        # dropped, and the new episode's plan asked for (not installed yet)
-        assert (stats.plans_asked, stats.plans_dropped, stats.plans_installed) == (2, 1, 0)
-        np.testing.assert_allclose(controller.tick(), [300, 300])  # held, not the old plan
+        assert (stats.plans_asked, stats.plans_dropped, stats.plans_installed) == (2, 0, 1)
+        assert controller.worker.cancelled == 1
+        stale = PlanJob(controller.generation - 1, 5, controller._history(), None, 0, None)
+        controller._on_result(PlanResult(stale, controller.queue.waypoints[0].copy(), 0.1))
+        controller.install_results()
+        assert (stats.plans_dropped, stats.plans_installed) == (1, 1)
     finally:
         controller.shutdown()
 

@@ -5,8 +5,9 @@ Commanded setpoints outside the inflated zones are not enough: the pusher follow
 carries its velocity into the next setpoint and cuts corners, so its disc can dip into a zone
 between setpoints. The pusher is kinematic, so its path is known exactly from its position,
 velocity and setpoint (`RobotModel.transition`). The shield accepts a setpoint only if
-holding it from now on keeps the pusher centre outside the area inflated by its radius; else it
-takes the largest step from the last accepted setpoint towards it that does. The last accepted
+holding it from now on keeps the pusher centre outside the area inflated by its radius (over a
+horizon, and at the setpoint itself, where the pusher comes to rest); else it takes the largest
+step from the last accepted setpoint towards it that does. The last accepted
 setpoint was itself checked from the previous state, so a safe choice exists as long as the
 zones do not change under the pusher (a shield in the sense of safe reinforcement learning).
 """
@@ -36,7 +37,10 @@ class PusherShield:
                  escape: float = 20.0) -> None:
         horizon = max(robot.substeps, round(horizon_s * robot.physics_hz))
         coefficients = robot.transition(max(horizon, MAX_GAP_STEPS * robot.substeps))
-        self.path = torch.from_numpy(coefficients[:horizon, 0])  # position after each substep
+        # Position after each substep, then at rest (the setpoint itself): the horizon may end
+        # before a pusher far away gets there, and a setpoint is held until the next one.
+        at_rest = np.array([[0.0, 0.0, 1.0]])
+        self.path = torch.from_numpy(np.concatenate([coefficients[:horizon, 0], at_rest]))
         # (2, 3) n control steps, n = 1 .. MAX_GAP_STEPS: entry n - 1
         self.control_steps = coefficients[robot.substeps - 1::robot.substeps][:MAX_GAP_STEPS]
         self.fractions = torch.tensor(FRACTIONS, dtype=torch.float64)
@@ -117,7 +121,7 @@ class PusherShield:
 
     def _safe(self, area: RestrictedArea, p: Tensor, v: Tensor, candidates: Tensor) -> Tensor:
         """(N, F) whether holding candidate (N, F, 2) keeps a pusher at p moving at v clear of
-        the area for the whole horizon (checked after every physics substep)."""
+        the area: after every physics substep of the horizon, and at the candidate itself."""
         a, b, c = self.path.unbind(-1)
         paths = (a[:, None] * p[:, None, None] + b[:, None] * v[:, None, None]
                  + c[:, None] * candidates[:, :, None])  # (N, F, H, 2)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from constrained_diffusion_ros.planning.config import ConstraintConfig
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
@@ -115,6 +117,60 @@ def test_the_shield_keeps_the_body_out_and_still_gets_there() -> None:
     assert shield.corrected > 0
     unshielded_end = drive(AROUND_THE_CORNER, None)[-1]
     assert np.linalg.norm(visited[-1] - unshielded_end) < 40  # slowed down, not stopped
+
+
+def test_a_setpoint_the_pusher_would_not_reach_within_the_horizon_is_still_refused() -> None:
+    """Holding a setpoint means coming to rest on it: one 2 px inside the grown zone, 200 px
+    away, is refused although the 0.6 s path stays out (the pusher gets within about 3 px)."""
+    shield = PusherShield(PUSHT_ROBOT)
+    out = shield(INFLATED, np.array([[0.0, 300.0]]), np.array([[187.0, 300.0]]), 0)
+    assert clearance(out)[0] >= AGENT_RADIUS + shield.margin
+    assert out[0, 0] > 100  # the largest safe step, not a stop
+
+
+def test_a_shortened_step_across_the_corner_keeps_out_of_the_grown_zone() -> None:
+    """Held setpoint and planned one both clear, the segment between them across the zone's
+    corner: the 0.75 step lies just inside the grown zone, and the pusher, still far away,
+    would not get there within the horizon; it must not be sent."""
+    shield = PusherShield(PUSHT_ROBOT)
+    position = np.array([[40.0, 334.0]])
+    shield(None, position, np.array([[168.0, 389.0]]), 0)  # held, the pusher at rest
+    goal = np.array([[241.0, 183.0]])
+    assert clearance(goal)[0] >= AGENT_RADIUS + 1
+    out = shield(INFLATED, position, goal, 0)
+    assert not np.array_equal(out, goal)  # the path to the goal crosses the corner
+    assert clearance(out)[0] >= AGENT_RADIUS + shield.margin
+
+
+BOX = (200.0, 200.0, 400.0, 400.0)  # ZONE's corners
+
+
+@st.composite
+def near_the_grown_zone(draw) -> tuple[float, float]:
+    """A point anywhere, or (where a mistake would hide) within 5 px of INFLATED's edge."""
+    if draw(st.booleans()):
+        return draw(st.floats(0, 512)), draw(st.floats(0, 512))
+    x0, y0, x1, y1 = BOX
+    along, off = draw(st.floats(0, 1)), AGENT_RADIUS + draw(st.floats(-5, 5))
+    side = draw(st.sampled_from([(x0 - off, y0 + along * (y1 - y0)),
+                                 (x1 + off, y0 + along * (y1 - y0)),
+                                 (x0 + along * (x1 - x0), y0 - off),
+                                 (x0 + along * (x1 - x0), y1 + off)]))
+    return side
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.tuples(st.floats(0, 512), st.floats(0, 512)), near_the_grown_zone(),
+       near_the_grown_zone(), st.tuples(st.floats(-400, 400), st.floats(-400, 400)))
+def test_every_setpoint_the_shield_returns_is_outside_the_grown_zone(
+        position: tuple, held: tuple, goal: tuple, velocity: tuple) -> None:
+    """Whatever the pusher's state, the setpoint held and the one asked for: what the shield
+    lets through is clear of the zone grown by the pusher radius (by its margin, or by its
+    escape clearance when it has to head out)."""
+    shield = PusherShield(PUSHT_ROBOT)
+    shield.last = (0, np.array([position]), [np.array([held])], np.array([velocity]))
+    out = shield(INFLATED, np.array([position]), np.array([goal]), 0)  # that observation
+    assert clearance(out)[0] >= AGENT_RADIUS + shield.margin - 1e-3
 
 
 def test_far_from_zones_setpoints_pass_unchanged() -> None:

@@ -322,8 +322,8 @@ class RealtimeController:
         for old in [s for s in self.observations if s <= step - self.n_obs_steps]:
             del self.observations[old]
         self.step = step
-        if first:  # the episode's first plan, at once: one from an earlier episode is stopped
-            self._ask(prefix=False, replan=True)
+        if first:  # the episode's first plan, at once (`new_episode` stopped the last one's)
+            self._ask(prefix=False)
         if np.isnan(self.queue.at(step)[0]).any():
             self.stats.held_steps += 1
         return self._update()

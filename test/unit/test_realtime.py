@@ -678,6 +678,27 @@ def test_a_new_episode_stops_the_plan_in_flight_and_never_installs_one_from_befo
         controller.shutdown()
 
 
+def test_a_zone_stops_the_first_plan_of_an_episode_like_any_other(
+        tiny_policy: DiffusionPolicy) -> None:
+    """The episode's first plan is asked at its first observation, knowing none of the zones
+    that come while it is planned: a zone on the held setpoint stops it, and the replan goes in."""
+    planner, started, release = held_planner(tiny_policy)
+    zones = LiveZones()
+    controller = RealtimeController(planner, zones, rate_hz=10.0, lead=1)
+    try:
+        controller.observe(0, observation_with_pusher(100, 100))
+        assert started.wait(5)
+        zones.upsert(1, rectangle(95, 95, 105, 105), now=0.0)
+        assert controller.zones_changed() is not None  # moved off the zone at once
+        release.set()
+        installed(controller)
+        stats = controller.stats
+        assert controller.worker.cancelled == 1
+        assert (stats.plans_asked, stats.plans_dropped, stats.plans_installed) == (2, 0, 1)
+    finally:
+        controller.shutdown()
+
+
 def test_fifo_priority_is_for_the_asking_thread_only_and_not_for_processes_it_starts() -> None:
     assert not request_fifo(0)
     seen: dict[str, object] = {}

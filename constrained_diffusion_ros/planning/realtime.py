@@ -454,7 +454,10 @@ class RealtimeController:
         return self.setpoint
 
     def _ask_if_running_out(self) -> None:
-        if not self.worker.busy and self.queue.remaining(self.step)[0] <= self.lead:
+        if self.worker.busy:
+            return
+        self.replan = None  # nothing in flight or waiting: a replan that failed is not coming
+        if self.queue.remaining(self.step)[0] <= self.lead:
             self._ask(prefix=True)
 
     def _guarded(self, setpoint: np.ndarray) -> np.ndarray:

@@ -299,6 +299,25 @@ def test_a_stopped_plan_that_arrives_anyway_is_dropped_without_asking_again(
         assert controller.stats.plans_dropped == 2 and len(submitted) == 3
 
 
+def test_a_replan_that_never_comes_does_not_keep_zones_from_stopping_plans(
+        tiny_policy: DiffusionPolicy) -> None:
+    """A replan that failed leaves the worker idle without a result: it is not waited for, and
+    the next zone change stops the plan in flight again."""
+    zones = LiveZones()
+    with submits_recorded(tiny_policy, zones) as (controller, submitted):
+        rest = controller.queue.upcoming(np.array([0]), 0,
+                                         int(controller.queue.remaining(0)[0]))[0]
+        for zone_id, waypoint in ((1, rest[1]), (2, rest[3])):
+            x, y = waypoint
+            zones.upsert(zone_id, rectangle(x - 2, y - 2, x + 2, y + 2), now=0.0)
+            controller.zones_changed()
+            assert submitted[-1][1] is True  # the plan in flight stopped
+            controller.worker.busy = False  # the replan failed: nothing in flight, no result
+            controller.observe(1, observation_with_pusher(200, 200))
+            controller.worker.busy = True  # a plan in flight again
+        assert len(submitted) == 2
+
+
 def test_a_zone_that_moves_the_held_setpoint_stops_the_plan_in_flight(
         tiny_policy: DiffusionPolicy) -> None:
     """The pusher held at the end of its chunk has no rest of the chunk for a zone to enter;

@@ -116,10 +116,10 @@ class BackgroundPlanner:
 
     def reseed(self, noise_seed: int) -> None:
         """A new episode: the same noise as a fresh node, from the next job on. The plan in
-        flight (worthless now) is stopped; it draws from the generator until then, so the
-        seed waits for the worker to take the next job."""
+        flight and any job waiting (the last episode's, worthless now) are dropped; the plan
+        draws from the generator until it stops, so the seed waits for the next job."""
         with self._wake:
-            self._seed = noise_seed
+            self._seed, self._job = noise_seed, None  # a job waiting is the last episode's too
             if self._busy:
                 self._cancel.set()
 
@@ -357,8 +357,10 @@ class PlanningProcess:
 
     def reseed(self, noise_seed: int) -> None:
         """A new episode: the same noise as a fresh node from the next job on (like any
-        message, it stops the plan in flight)."""
-        self._tell("seed", noise_seed)
+        message, it stops the plan in flight; a job waiting is the last episode's too)."""
+        with self._lock:
+            self._pending = None
+            self._tell_locked("seed", noise_seed)
 
     def _tell(self, kind: str, payload: object) -> None:
         with self._lock:

@@ -147,8 +147,9 @@ def test_the_background_planner_stops_the_plan_in_flight_when_asked() -> None:
 
 
 def test_the_background_planner_reseeds_from_the_next_job_and_stops_the_one_in_flight() -> None:
-    """A new episode while a plan draws noise: that plan is stopped, and the next draws what a
-    fresh worker would, however much the stopped one drew after the reseed."""
+    """A new episode while a plan draws noise: that plan is stopped, the job waiting behind it
+    dropped, and the next draws what a fresh worker would, however much the stopped one drew
+    after the reseed."""
     started, release, results, done = threading.Event(), threading.Event(), [], \
         threading.Semaphore(0)
 
@@ -164,11 +165,17 @@ def test_the_background_planner_reseeds_from_the_next_job_and_stops_the_one_in_f
     try:
         worker.submit(PlanJob(1, 0, torch.zeros(1, 2, 20), None, 0, None))
         assert started.wait(5)
+        worker.submit(PlanJob(2, 0, torch.zeros(1, 2, 20), None, 0, None))  # waiting
         worker.reseed(7)
-        worker.submit(PlanJob(2, 0, torch.zeros(1, 2, 20), None, 0, None))
         release.set()
+        for _ in range(2500):  # the plan in flight stops, and the job waiting never starts
+            if not worker.busy:
+                break
+            threading.Event().wait(0.002)
+        assert not worker.busy and not results and worker.cancelled == 1
+        worker.submit(PlanJob(3, 0, torch.zeros(1, 2, 20), None, 0, None))
         assert done.acquire(timeout=5)
-        assert [r.job.generation for r in results] == [2] and worker.cancelled == 1
+        assert [r.job.generation for r in results] == [3]
         fresh = torch.rand(16, 2, generator=torch.Generator().manual_seed(7)).numpy()
         np.testing.assert_array_equal(results[0].chunk, fresh)
     finally:

@@ -427,7 +427,7 @@ class RealtimeController:
             chunk = result.chunk[None]
             if job.zone_version != self.zones.version_at(self.step) and self._violates(chunk):
                 self.stats.plans_dropped += 1  # planned before the zones that it enters
-                if self.replan is None:  # else one is coming, asked after those zones
+                if self.replan is None or not self.worker.busy:  # else one is coming
                     self._ask(prefix=False)
                 continue
             self.queue.install(np.array([0]), chunk, job.step, self.step)

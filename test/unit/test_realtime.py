@@ -308,8 +308,8 @@ def test_a_stopped_plan_that_arrives_anyway_is_dropped_without_asking_again(
 
 def test_a_replan_that_never_comes_does_not_keep_zones_from_stopping_plans(
         tiny_policy: DiffusionPolicy) -> None:
-    """A replan that failed leaves the worker idle without a result: it is not waited for, and
-    the next zone change stops the plan in flight again."""
+    """A replan that failed leaves the worker idle without a result: it is not waited for. The
+    next zone change stops the plan in flight again, and a plan dropped on arrival asks again."""
     zones = LiveZones()
     with submits_recorded(tiny_policy, zones) as (controller, submitted):
         rest = controller.queue.upcoming(np.array([0]), 0,
@@ -323,6 +323,14 @@ def test_a_replan_that_never_comes_does_not_keep_zones_from_stopping_plans(
             controller.observe(1, observation_with_pusher(200, 200))
             controller.worker.busy = True  # a plan in flight again
         assert len(submitted) == 2
+        chunk = controller.queue.waypoints[0].copy()
+        x, y = rest[5]
+        zones.upsert(3, rectangle(x - 2, y - 2, x + 2, y + 2), now=0.0)
+        controller.zones_changed()  # a third replan, which fails too
+        controller.worker.busy = False
+        controller._on_result(PlanResult(submitted[0][0], chunk, 0.1))  # stopped too late
+        controller.install_results()
+        assert controller.stats.plans_dropped == 1 and len(submitted) == 4  # asked again
 
 
 def test_a_zone_that_moves_the_held_setpoint_stops_the_plan_in_flight(

@@ -315,13 +315,14 @@ def periods_between(client: Client, start: float, stop: float) -> tuple[list[flo
 
 def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
               result: Condition) -> None:
-    last = client.pushers[-1][1] if client.pushers else 0
+    last, seen = (client.pushers[-1][1] if client.pushers else 0), len(client.pushers)
     client.reset_to(seed)
     # Until the node sees the new scene it may still install (and publish) a plan of the last
     # one: wait for the new scene's first observation, then for a plan after it. (A sim still
     # at step 0 gives nothing to tell the new scene by.)
     if last > 0:
-        client.spin_until(lambda: client.pushers[-1][1] < last, 60.0, "the new scene")
+        client.spin_until(lambda: any(step < last for _, step, _ in client.pushers[seen:]),
+                          60.0, "the new scene")
     begin = time.monotonic()
     client.spin_until(lambda: client.plan is not None and client.plan_time > begin
                       and client.setpoints and client.setpoints[-1].received > begin,

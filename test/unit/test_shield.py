@@ -130,8 +130,8 @@ def test_a_setpoint_the_pusher_would_not_reach_within_the_horizon_is_still_refus
 
 def test_a_shortened_step_across_the_corner_keeps_out_of_the_grown_zone() -> None:
     """Held setpoint and planned one both clear, the segment between them across the zone's
-    corner: the 0.75 step lies just inside the grown zone, and the pusher, still far away,
-    would not get there within the horizon; it must not be sent."""
+    corner: the 0.25 step lies just inside the grown zone (the larger ones in the zone), and
+    the pusher, still far away, would not get there within the horizon; it must not be sent."""
     shield = PusherShield(PUSHT_ROBOT)
     position = np.array([[40.0, 334.0]])
     shield(None, position, np.array([[168.0, 389.0]]), 0)  # held, the pusher at rest

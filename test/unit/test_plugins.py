@@ -4,9 +4,13 @@ and the worked example, zones drawn in a camera image (`examples.camera.CameraZo
 from __future__ import annotations
 
 import contextlib
+import importlib
+import inspect
 import runpy
+import sys
+from collections.abc import Iterator, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 from unittest import mock
 
 import numpy as np
@@ -14,11 +18,14 @@ import pytest
 import shapely
 import torch
 import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from torch import Tensor
 
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 from constrained_diffusion_ros.examples.camera import CameraZones, apply_homography
 from constrained_diffusion_ros.zones import RestrictedArea, ZoneSet
-from constrained_diffusion_ros.zones.plugins import ENTRY_POINT_GROUP, load_area
+from constrained_diffusion_ros.zones.plugins import ENTRY_POINT_GROUP, load_area, probe_points
 
 REPO = Path(__file__).resolve().parents[2]
 CAMERA = "constrained_diffusion_ros.examples.camera:CameraZones"
@@ -122,8 +129,10 @@ def test_load_area_by_module_path_builds_the_class_with_the_parameters() -> None
     ("constrained_diffusion_ros.examples.camera:NoSuchArea", {}, "has no attribute 'NoSuchArea'"),
     ("constrained_diffusion_ros.examples.camera:", {}, "expected 'package.module:Class'"),
     ("constrained_diffusion_ros.zones.geometry:rectangle",
-     {"x_min": 0, "y_min": 0, "x_max": 1, "y_max": 1}, "built a ndarray, not a RestrictedArea"),
-    ("constrained_diffusion_ros.examples.camera:WORKSPACE_CENTRE", {}, "tuple is not callable"),
+     {"x_min": 0, "y_min": 0, "x_max": 1, "y_max": 1}, "names a function, not a RestrictedArea"),
+    ("constrained_diffusion_ros.examples.camera:WORKSPACE_CENTRE", {},
+     "names a tuple, not a RestrictedArea subclass"),
+    ("constrained_diffusion_ros.zones:RestrictedArea", {}, r"abstract \(implement signed_dist"),
     (CAMERA, {"config_file": "camera_zones.yaml", "fov": 60}, "bad parameters"),
     (CAMERA, {}, "bad parameters"),
     (CAMERA, {"config_file": "/nonexistent/camera.yaml"}, "cannot be built .ValueError"),
@@ -164,3 +173,279 @@ def test_load_area_by_entry_point_name(tmp_path: Path, monkeypatch: pytest.Monke
         load_area("broken", {})
     with pytest.raises(ValueError, match=r"known: .*camera_zones"):
         load_area("camera", {})
+
+
+# -- A scenario file names a class, never a call (issue 26) -----------------------------------
+
+CALLED: list[str] = []  # what of this module a spec ran
+
+
+class NotAnArea:
+    """A class that is not a RestrictedArea: building it would run its __init__."""
+
+    def __init__(self, **parameters: Any) -> None:
+        CALLED.append("NotAnArea")
+
+
+def make_area(**parameters: Any) -> RestrictedArea:
+    """A factory function that returns a good area: refused all the same, being a call."""
+    CALLED.append("make_area")
+    return ZoneSet.from_polygons([[[0, 0], [9, 0], [9, 9]]])
+
+
+class Answers(RestrictedArea):
+    """An area whose signed distance is `answer(points)`: the probe's bad answers."""
+
+    answer: Any = staticmethod(lambda p: p[..., 0] - 256.0)
+
+    def signed_distance(self, points: Tensor) -> Tensor:
+        return self.answer(points)
+
+
+class NaNArea(Answers):
+    answer = staticmethod(lambda p: torch.where(p[..., 0] > 300, torch.nan, p[..., 0]))
+
+
+class NegInfArea(Answers):
+    answer = staticmethod(lambda p: torch.full(p.shape[:-1], -torch.inf, dtype=p.dtype))
+
+
+class InfArea(Answers):
+    """Nothing anywhere, as an empty ZoneSet answers: +inf is a distance, and accepted."""
+
+    answer = staticmethod(lambda p: torch.full(p.shape[:-1], torch.inf, dtype=p.dtype))
+
+
+class PointShapeArea(Answers):
+    answer = staticmethod(lambda p: p - 256.0)  # (..., 2), not (...)
+
+
+class FlatArea(Answers):
+    answer = staticmethod(lambda p: p.reshape(-1, 2)[:, 0] - 256.0)  # only (N, 2) batches
+
+
+class RaisingArea(Answers):
+    @staticmethod
+    def answer(p: Tensor) -> Tensor:
+        raise RuntimeError("model weights\nnot loaded")
+
+
+class NumpyArea(Answers):
+    answer = staticmethod(lambda p: p[..., 0].numpy() - 256.0)
+
+
+class IntegerArea(Answers):
+    answer = staticmethod(lambda p: p[..., 0].long() - 256)
+
+
+class Float64OnlyArea(Answers):
+    """A model that takes only float64, when the shield asks in float32."""
+
+    @staticmethod
+    def answer(p: Tensor) -> Tensor:
+        if p.dtype != torch.float64:
+            raise TypeError(f"expected float64, got {p.dtype}")
+        return p[..., 0] - 256.0
+
+
+class FloatContainsArea(Answers):
+    def contains(self, points: Tensor) -> Tensor:
+        return (self.signed_distance(points) < 0).double()
+
+
+class RecordingArea(Answers):
+    """Keeps every point it was asked about."""
+
+    asked: ClassVar[list[Tensor]] = []
+
+    def signed_distance(self, points: Tensor) -> Tensor:
+        RecordingArea.asked.append(points.reshape(-1, 2).double())
+        return super().signed_distance(points)
+
+
+class LazyMeta(type):
+    @property
+    def area(cls) -> type[RestrictedArea]:  # reading Holder.area would run this
+        CALLED.append("Holder.area")
+        return InfArea
+
+
+class Holder(metaclass=LazyMeta):
+    pass
+
+
+HERE = __name__  # this module as the test run imported it: a plug-in package of its own
+
+
+@pytest.fixture
+def victims(tmp_path: Path) -> Iterator[dict[str, str]]:
+    """Paths a command would create or remove; checked untouched after the test."""
+    victim = tmp_path / "victim"
+    victim.mkdir()
+    (victim / "kept").write_text("kept")
+    paths = {"pwned": str(tmp_path / "pwned"), "victim": str(victim)}
+    CALLED.clear()
+    yield paths
+    assert not Path(paths["pwned"]).exists(), "a scenario's command ran"
+    assert (victim / "kept").exists(), "a scenario's command removed a directory"
+    assert not CALLED, f"{CALLED} ran"
+
+
+ATTACKS = [  # (spec, parameters with {pwned} / {victim} filled in, what the refusal says)
+    ("os:system", {"command": "touch {pwned}"}, "names a builtin_function_or_method, not a "
+                                                "RestrictedArea subclass"),
+    ("builtins:eval", {}, "names a builtin_function_or_method, not a RestrictedArea"),
+    ("builtins:exec", {}, "names a builtin_function_or_method, not a RestrictedArea"),
+    ("subprocess:run", {"args": ["touch", "{pwned}"]}, "names a function, not a Restricted"),
+    ("subprocess:Popen", {"args": ["touch", "{pwned}"]}, "names class Popen, not a Restricted"),
+    ("shutil:rmtree", {"path": "{victim}"}, "names a function, not a RestrictedArea"),
+    ("builtins:open", {"file": "{pwned}", "mode": "w"}, "names a builtin_function_or_method"),
+    ("pathlib:Path.touch", {"self": "{pwned}"}, "names a function, not a RestrictedArea"),
+    ("os.path:join", {}, "names a function, not a RestrictedArea subclass"),
+    ("os:path.join", {}, "names a function, not a RestrictedArea subclass"),
+    ("constrained_diffusion_ros.zones.geometry:rectangle", {}, "names a function, not a Rest"),
+    (f"{HERE}:make_area", {}, "names a function, not a RestrictedArea subclass"),
+    ("collections:OrderedDict", {}, "names class OrderedDict, not a RestrictedArea subclass"),
+    (f"{HERE}:NotAnArea", {}, "names class NotAnArea, not a RestrictedArea subclass"),
+    (f"{HERE}:Holder.area", {}, "names a property, not a RestrictedArea subclass"),
+    (f"{HERE}:Answers.answer", {}, "names a staticmethod, not a RestrictedArea subclass"),
+    (f"{HERE}:NaNArea", {}, r"signed_distance returned NaN at \(384, 0\) for torch.float64 "
+                            r"points of shape \(30, 2\)"),
+    (f"{HERE}:NegInfArea", {}, r"signed_distance returned -inf at \(0, 0\)"),
+    (f"{HERE}:PointShapeArea", {}, r"signed_distance returned shape \(30, 2\) for torch.float64 "
+                                   r"points of shape \(30, 2\), expected \(30,\)"),
+    (f"{HERE}:FlatArea", {}, r"returned shape \(30,\) for torch.float64 points of shape "
+                             r"\(5, 6, 2\), expected \(5, 6\)"),
+    (f"{HERE}:RaisingArea", {}, r"signed_distance failed on torch.float64 points of shape "
+                                r"\(30, 2\) \(RuntimeError: model weights not loaded\)"),
+    (f"{HERE}:NumpyArea", {}, "signed_distance returned a ndarray, not a torch.Tensor"),
+    (f"{HERE}:IntegerArea", {}, "returned dtype torch.int64 .*expected a floating-point"),
+    (f"{HERE}:Float64OnlyArea", {}, r"failed on torch.float32 points .*TypeError: expected fl"),
+    (f"{HERE}:FloatContainsArea", {}, "contains returned dtype torch.float64 .*expected torch"
+                                      ".bool"),
+]
+
+
+@pytest.mark.parametrize(("spec", "parameters", "message"), ATTACKS,
+                         ids=[spec.rpartition(":")[2] for spec, _, _ in ATTACKS])
+def test_a_spec_that_is_not_a_sound_restricted_area_is_refused_before_it_runs(
+        spec: str, parameters: dict, message: str, victims: dict[str, str]) -> None:
+    """Found by finding 2 of issue 26: "os:system" ran the scenario's command, and only then
+    was its result refused. Every row is one line naming the spec, and nothing named ran."""
+    filled = {k: [w.format(**victims) for w in v] if isinstance(v, list) else
+              v.format(**victims) if isinstance(v, str) else v for k, v in parameters.items()}
+    with pytest.raises(ValueError, match=message) as raised:
+        load_area(spec, filled)
+    text = str(raised.value)
+    assert text.startswith(f"restricted area {spec!r}: ") and "\n" not in text
+
+
+def test_attribute_paths_are_read_without_running_module_getattr(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, victims: dict[str, str]) -> None:
+    """A module-level __getattr__ (PEP 562) is code: the spec's attribute must be in the module
+    itself. The module's own import runs, as every plug-in's does."""
+    name = f"lazy_plugin_{tmp_path.name.replace('-', '_')}"
+    (tmp_path / f"{name}.py").write_text(
+        "import pathlib\n"
+        "def __getattr__(name):\n"
+        f"    pathlib.Path({victims['pwned']!r}).touch()\n"
+        "    raise AttributeError(name)\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, name, raising=False)
+    with pytest.raises(ValueError, match=f"module '{name}' has no attribute 'Area'"):
+        load_area(f"{name}:Area", {})
+
+
+def test_entry_points_are_held_to_the_same_rule(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, victims: dict[str, str]) -> None:
+    """An installed distribution's entry point naming a function is refused unrun too."""
+    info = tmp_path / "evil_plugin-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: evil-plugin\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text(
+        f"[{ENTRY_POINT_GROUP}]\nshell = os:system\nrunner = subprocess:run\n"
+        f"module = os\nfine = {HERE}:InfArea\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with pytest.raises(ValueError, match="'shell': names a builtin_function_or_method, not a "):
+        load_area("shell", {"command": f"touch {victims['pwned']}"})
+    with pytest.raises(ValueError, match="'runner': names a function, not a RestrictedArea"):
+        load_area("runner", {"args": ["touch", victims["pwned"]]})
+    with pytest.raises(ValueError, match=r"'module': entry point 'os' does not load .*module"):
+        load_area("module", {})
+    assert isinstance(load_area("fine", {}), InfArea)
+
+
+def test_the_probe_covers_the_workspace_it_is_given() -> None:
+    """5 x 5 over the workspace, one point off the grid, and one past each wall; and areas
+    with nothing in them (+inf everywhere, as an empty ZoneSet) are accepted."""
+    points = probe_points((0.0, 0.0, 512.0, 512.0))
+    assert points.shape == (30, 2) and points.dtype == torch.float64
+    assert {tuple(p) for p in points[:25].tolist()} == {
+        (x, y) for x in (0, 128, 256, 384, 512) for y in (0, 128, 256, 384, 512)}
+    assert points[25].tolist() == pytest.approx([153.6, 358.4])
+    assert points[26:].tolist() == [[-16, 256], [528, 256], [256, -16], [256, 528]]
+    RecordingArea.asked.clear()
+    assert isinstance(load_area(f"{HERE}:RecordingArea", workspace=(100, 50, 200, 90)),
+                      RecordingArea)
+    asked = torch.cat(RecordingArea.asked)
+    assert asked.amin(dim=0).tolist() == [84, 50 - 16] and asked.amax(dim=0).tolist() == [216,
+                                                                                          106]
+    assert torch.isinf(load_area(f"{HERE}:InfArea").signed_distance(points)).all()
+    empty = ZoneSet.from_polygons([])
+    assert torch.isposinf(empty.signed_distance(points)).all()  # what InfArea stands for
+
+
+# The property: any stdlib attribute, with any parameters, is refused without being called.
+STDLIB = [importlib.import_module(m) for m in (
+    "os", "os.path", "subprocess", "shutil", "builtins", "pathlib", "importlib", "functools",
+    "collections", "io", "tempfile", "sys", "signal", "socket", "pickle", "runpy", "ctypes")]
+AFTER_A_CALL = ("bad parameters", "cannot be built", "built a")  # load_area's words
+
+
+class Tripwire(Mapping[str, Any]):
+    """Parameters that raise as soon as they are unpacked into a call, before the callee runs:
+    a call of the named object is seen, and (on a regression) nothing drawn is ever run."""
+
+    def __init__(self, keys: list[str]) -> None:
+        self._keys, self.unpacked = keys, False
+
+    def keys(self) -> Any:  # `f(**mapping)` asks for the keys first
+        self.unpacked = True
+        raise RuntimeError("the spec's object was called")
+
+    def __getitem__(self, key: str) -> Any:
+        self.unpacked = True
+        raise RuntimeError("the spec's object was called")
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._keys)
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
+
+@st.composite
+def stdlib_specs(draw: st.DrawFn) -> str:
+    """"module:attribute" or "module:attribute.member" over STDLIB, members read statically."""
+    module = draw(st.sampled_from(STDLIB))
+    attribute = draw(st.sampled_from(sorted(dir(module))))
+    target = inspect.getattr_static(module, attribute)
+    members = sorted(m for m in dir(target) if isinstance(m, str)) \
+        if isinstance(target, type) else []
+    if members and draw(st.booleans()):
+        attribute = f"{attribute}.{draw(st.sampled_from(members))}"
+    return f"{module.__name__}:{attribute}"
+
+
+@settings(max_examples=150, deadline=None)
+@given(spec=stdlib_specs(),
+       keys=st.lists(st.sampled_from(["command", "args", "path", "file", "source", "x"]),
+                     max_size=3, unique=True))
+def test_no_stdlib_object_is_ever_called(spec: str, keys: list[str]) -> None:
+    parameters = Tripwire(keys)
+    with pytest.raises(ValueError) as raised:
+        load_area(spec, parameters)
+    text = str(raised.value)
+    assert not parameters.unpacked, f"{spec} was called"
+    assert text.startswith(f"restricted area {spec!r}: ") and "\n" not in text
+    assert not any(phrase in text for phrase in AFTER_A_CALL), text

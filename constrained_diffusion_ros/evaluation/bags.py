@@ -12,10 +12,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
+import stat
+import struct
 import sys
+import tempfile
 from collections import Counter, defaultdict
-from pathlib import Path
+from pathlib import Path, PurePath
 
 import yaml
 from mcap.exceptions import McapError
@@ -32,6 +36,7 @@ from sim_bridge import CONTROL_HZ
 BAG_VERSION = 9  # rosbag2 metadata version written by ROS 2 Jazzy
 FLUSH_PERIOD_S = 0.5  # a SIGKILL loses at most about this much of the recording
 RECORDER_STATE = "recorder"  # custom_data key while a bag is open, and after a recovery
+MCAP_MAGIC = b"\x89MCAP0\r\n"  # how every MCAP file starts
 TRIAL_TOPICS = {"pusher": "pusher", "block": "block_pose",
                 "setpoint": "setpoint"}
 
@@ -145,25 +150,35 @@ def recover(bag: Path) -> int | None:
     """Rewrite a bag whose recorder died: every complete message of its MCAP file, in recording
     order, with index, summary and metadata.yaml (custom_data kept, message_counts recounted).
     The unindexed file is kept beside it as `<name>.mcap.unindexed`. Returns the number of
-    messages recovered, or None when the bag was complete already."""
+    messages recovered, or None when the bag was complete already. Only regular files inside
+    the bag are read or renamed, and nothing is changed unless at least one message is
+    recovered (ValueError otherwise)."""
+    if (bag / "metadata.yaml").is_symlink() or (bag / "metadata.yaml").exists():
+        _file_in_bag(bag, "metadata.yaml", "bag file")  # a FIFO here would block the read
     information = bag_information(bag)
+    files = information.get("relative_file_paths") or []
+    if not isinstance(files, list):
+        raise ValueError(f"{bag / 'metadata.yaml'}: relative_file_paths is not a list")
+    sources = [_file_in_bag(bag, entry) for entry in files]  # before any file is opened
     try:
         with Reader(bag):
             return None
     except ReaderError:
         pass
-    files = information.get("relative_file_paths") or []
     if information.get("storage_identifier") != "mcap" or len(files) != 1:
         raise ValueError(f"{bag}: only single-file MCAP bags can be recovered")
-    source = bag / files[0]
-    scratch = bag / ".recovering" / bag.name
-    shutil.rmtree(scratch.parent, ignore_errors=True)
+    source, target = sources[0], bag / f"{bag.name}.mcap"
+    unindexed = source.with_name(source.name + ".unindexed")
+    for taken in (unindexed, target):
+        if taken != source and (taken.is_symlink() or taken.exists()):
+            raise ValueError(f"{bag}: {taken.name} exists already; recovery would replace it")
+    scratch = Path(tempfile.mkdtemp(prefix=".recovering-", dir=bag)) / bag.name
     typestore = get_typestore(Stores.ROS2_JAZZY)
     counts: Counter[str] = Counter()
-    writer = Writer(scratch, version=BAG_VERSION, storage_plugin=StoragePlugin.MCAP)
-    writer.open()
-    connections = {}
     try:
+        writer = Writer(scratch, version=BAG_VERSION, storage_plugin=StoragePlugin.MCAP)
+        writer.open()
+        connections = {}
         with source.open("rb") as stream:
             for schema, channel, message in _complete_messages(stream):
                 connection = connections.get(channel.id)
@@ -177,6 +192,9 @@ def recover(bag: Path) -> int | None:
                         offered_qos_profiles=qos)
                 writer.write(connection, message.log_time, message.data)
                 counts[channel.topic] += 1
+        if not counts:
+            raise ValueError(f"{source}: nothing to recover ({_why_empty(source)}); the bag is "
+                             f"left as it is")
         custom_data = dict(information.get("custom_data") or {})
         custom_data["message_counts"] = json.dumps(dict(counts))
         custom_data[RECORDER_STATE] = (f"recovered by recover_bag: {counts.total()} complete "
@@ -184,21 +202,58 @@ def recover(bag: Path) -> int | None:
         for key, value in custom_data.items():
             writer.set_custom_data(key, value)
         writer.close()
-    except BaseException:
+        source.replace(unindexed)
+        (scratch / f"{bag.name}.mcap").replace(target)
+        (scratch / "metadata.yaml").replace(bag / "metadata.yaml")
+    finally:
         shutil.rmtree(scratch.parent, ignore_errors=True)
-        raise
-    source.replace(source.with_name(source.name + ".unindexed"))
-    (scratch / f"{bag.name}.mcap").replace(bag / f"{bag.name}.mcap")
-    (scratch / "metadata.yaml").replace(bag / "metadata.yaml")
-    shutil.rmtree(scratch.parent)
     return counts.total()
 
 
+def _file_in_bag(bag: Path, entry: object,
+                 what: str = "relative_file_paths entry") -> Path:
+    """The file a metadata entry names, where rosbags' Reader looks for it (`bag / name`), if it
+    is a regular file inside the bag: recovery renames it, so an entry must not reach a file
+    elsewhere (an absolute path, `..`, a symlink out), and a FIFO would block the open."""
+    if not isinstance(entry, str) or not entry:
+        raise ValueError(f"{bag}: {what} {entry!r} is not a file name")
+    relative = PurePath(entry)
+    if relative.is_absolute() or ".." in relative.parts:
+        raise ValueError(f"{bag}: {what} {entry!r} is outside the bag; refused")
+    path = bag / relative.name
+    try:
+        resolved = path.resolve()
+    except (OSError, RuntimeError) as error:  # a symlink loop
+        raise ValueError(f"{bag}: {what} {entry!r}: {error}") from None
+    if not resolved.is_relative_to(bag.resolve()):
+        raise ValueError(f"{bag}: {what} {entry!r} links outside the bag (to {resolved}); "
+                         "refused")
+    try:
+        mode = os.stat(path).st_mode  # stat, not open: opening a FIFO blocks
+    except FileNotFoundError:
+        raise ValueError(f"{bag}: {what} {entry!r}: no such file in the bag") from None
+    if not stat.S_ISREG(mode):
+        raise ValueError(f"{bag}: {what} {entry!r} is not a regular file; refused")
+    return path
+
+
+def _why_empty(source: Path) -> str:
+    """Why a file gave no message, in words for the one-line error."""
+    with source.open("rb") as stream:
+        head = stream.read(len(MCAP_MAGIC))
+    if not head:
+        return "the file is empty"
+    if head != MCAP_MAGIC:
+        return "not an MCAP file"
+    return "no complete message in the file"
+
+
 def _complete_messages(stream):
-    """(schema, channel, message) of every whole record, up to where the file was cut off."""
+    """(schema, channel, message) of every whole record, up to where the file was cut off (a
+    cut inside a record's fixed-size fields surfaces as struct.error)."""
     try:
         yield from NonSeekingReader(stream).iter_messages(log_time_order=False)
-    except (McapError, EOFError):
+    except (McapError, EOFError, struct.error):
         return
 
 

@@ -1,0 +1,164 @@
+"""`recover_bag` renames and rewrites files, so it must touch only regular files inside the bag,
+and must say so (exit 2, one line) rather than "0 messages recovered" when it finds nothing."""
+
+from __future__ import annotations
+
+import os
+import stat
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+import yaml
+from rosbags.typesys import Stores, get_typestore
+
+from constrained_diffusion_ros.evaluation import bags
+
+TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+STRING = "std_msgs/msg/String"
+
+
+def killed_recording(directory: Path, messages: int) -> Path:
+    """A bag as a recorder killed with SIGKILL leaves it: metadata.yaml from the start, the
+    chunks flushed so far (one message each), no index, no footer. Returns its MCAP file."""
+    writer = bags.open_bag(directory, {"trial_metadata": "{}"})
+    connection = writer.add_connection("/pusher", STRING, typestore=TYPESTORE)
+    bags.flush(writer)
+    for step in range(messages):
+        data = TYPESTORE.serialize_cdr(TYPESTORE.types[STRING](data=f"step {step}"), STRING)
+        writer.write(connection, step + 1, data)
+        bags.flush(writer)
+    writer.storage.bio.close()  # killed: the summary and footer are never written
+    return directory / f"{directory.name}.mcap"
+
+
+def pointing_at(bag: Path, entry: str) -> Path:
+    """A bag directory whose metadata.yaml lists `entry` as its one storage file."""
+    bag.mkdir()
+    no_time = {"nanoseconds_since_epoch": 0}
+    information = {
+        "version": bags.BAG_VERSION, "storage_identifier": "mcap", "relative_file_paths": [entry],
+        "duration": {"nanoseconds": 0}, "starting_time": no_time, "message_count": 0,
+        "topics_with_message_count": [], "compression_format": "", "compression_mode": "",
+        "files": [{"path": entry, "starting_time": no_time, "duration": {"nanoseconds": 0},
+                   "message_count": 0}],
+        "custom_data": {}, "ros_distro": "rosbags"}
+    (bag / "metadata.yaml").write_text(yaml.safe_dump({"rosbag2_bagfile_information":
+                                                       information}))
+    return bag
+
+
+def with_storage(root: Path, write: Callable[[Path], None]) -> Path:
+    """A killed recorder's bag whose MCAP file is replaced by what `write` makes at its path."""
+    storage = killed_recording(root / "bag", 3)
+    storage.unlink()
+    write(storage)
+    return root / "bag"
+
+
+def outside_file(root: Path) -> Path:
+    """Someone else's file, beside the bag: a killed recording that recovery would accept."""
+    return killed_recording(root / "outside", 3)
+
+
+ATTACKS: dict[str, Callable[[Path], tuple[Path, str]]] = {
+    "absolute path": lambda root: (pointing_at(root / "bag", str(outside_file(root))),
+                                   "outside.mcap"),
+    "dotdot path": lambda root: (
+        pointing_at(root / "bag", f"../outside/{outside_file(root).name}"), "../outside"),
+    "symlink out": lambda root: (
+        with_storage(root, lambda path: path.symlink_to(outside_file(root))), "links outside"),
+    "fifo": lambda root: (with_storage(root, os.mkfifo), "not a regular file"),
+    "garbage": lambda root: (
+        with_storage(root, lambda path: path.write_bytes(bytes(range(256)) * 16)),
+        "not an MCAP file"),
+    "empty file": lambda root: (
+        with_storage(root, lambda path: path.write_bytes(b"")), "empty"),
+    "mcap without messages": lambda root: (killed_recording(root / "bag", 0).parent,
+                                           "no complete message"),
+}
+
+
+def tree(root: Path) -> dict[str, tuple]:
+    """Every path under root, what it is and what it holds: read without following a symlink
+    and without opening a FIFO."""
+    found: dict[str, tuple] = {}
+    for directory, names, files in os.walk(root):
+        for name in names + files:
+            path = Path(directory, name)
+            mode = os.lstat(path).st_mode
+            if stat.S_ISLNK(mode):
+                found[str(path.relative_to(root))] = ("link", os.readlink(path))
+            elif stat.S_ISREG(mode):
+                found[str(path.relative_to(root))] = ("file", path.read_bytes())
+            else:
+                found[str(path.relative_to(root))] = (stat.S_IFMT(mode),)
+    return found
+
+
+@contextmanager
+def unblocking(root: Path) -> Iterator[list[Path]]:
+    """Opens the write end of every FIFO under root whenever something waits to read it, so
+    that code which opens one gets end-of-file instead of hanging the test. Yields the FIFOs
+    it had to answer: a reader that never opens them leaves the list empty."""
+    fifos = [path for path in root.rglob("*") if stat.S_ISFIFO(os.lstat(path).st_mode)]
+    answered: list[Path] = []
+    stop = threading.Event()
+
+    def answer() -> None:
+        while not stop.wait(0.02):
+            for fifo in fifos:
+                try:
+                    os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+                except OSError:  # nobody is reading it (ENXIO), or it was renamed
+                    continue
+                answered.append(fifo)
+
+    thread = threading.Thread(target=answer, daemon=True)
+    thread.start()
+    try:
+        yield answered
+    finally:
+        stop.set()
+        thread.join()
+
+
+@pytest.mark.parametrize("attack", list(ATTACKS))
+def test_recover_bag_refuses_and_changes_nothing(attack, tmp_path, capsys):
+    bag, named = ATTACKS[attack](tmp_path)
+    before = tree(tmp_path)
+    capsys.readouterr()
+    with unblocking(tmp_path) as opened_fifos:
+        code = bags.main([str(bag)])
+    out, err = capsys.readouterr()
+    assert code == 2, (out, err)
+    assert out == ""
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("recover_bag: error: "), err
+    assert named in lines[0], lines[0]
+    assert opened_fifos == []
+    assert tree(tmp_path) == before  # nothing renamed, written or left behind, in or out
+
+
+@pytest.mark.parametrize(("cut", "kept"), [("inside the last chunk", 4),
+                                           ("one byte short", 5)])
+def test_recover_bag_still_indexes_a_cut_off_recording(cut, kept, tmp_path, capsys):
+    """A killed recorder's file, cut off in mid-write (inside its last chunk, or inside the
+    message index after it: mcap then raises struct.error): the complete messages are
+    recovered, the original kept as .unindexed, and a second run leaves the bag alone."""
+    four = killed_recording(tmp_path / "four", 4).stat().st_size
+    storage = killed_recording(tmp_path / "bag", 5)
+    five = storage.stat().st_size
+    data = storage.read_bytes()[:(four + five) // 2 if cut == "inside the last chunk" else -1]
+    storage.write_bytes(data)
+    assert bags.main([str(tmp_path / "bag")]) == 0
+    messages = bags.read_messages(tmp_path / "bag")
+    assert [m.data for m in messages["/pusher"]] == [f"step {step}" for step in range(kept)]
+    assert (tmp_path / "bag" / "bag.mcap.unindexed").read_bytes() == data
+    assert sorted(p.name for p in (tmp_path / "bag").iterdir()) == [
+        "bag.mcap", "bag.mcap.unindexed", "metadata.yaml"]
+    assert f"{kept} messages recovered" in capsys.readouterr().out
+    assert bags.main([str(tmp_path / "bag")]) == 0
+    assert "complete already" in capsys.readouterr().out

@@ -15,7 +15,10 @@ build a mask from polygons; `read_pgm` reads a map image as map_server saves it.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+import threading
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +30,23 @@ from constrained_diffusion_ros.zones.geometry import validate_polygon
 
 KEEPOUT = 100  # the value `rasterize` writes in keep-out cells
 DEFAULT_THRESHOLD = 65  # nav2 map_server's occupied_thresh 0.65, in OccupancyGrid percent
+
+
+@dataclass(frozen=True)
+class MaskCaps:
+    """What a keep-out mask may cost, checked before the expensive step it bounds.
+
+    A mask's pieces become zones the planner, the shield and the no-free-space check rebuild
+    derived areas from (inflation, the union): their cost grows with pieces and vertices, so a
+    fine checkerboard would stall the node for minutes. `cells` bounds the scan of the mask,
+    `rectangles` the union that merges its cell runs, `pieces` and `vertices` (summed over the
+    pieces) what the node then holds in force; `scripts/bench_zones.py` times them.
+    """
+
+    cells: int = 4096 * 4096
+    rectangles: int = 4096
+    pieces: int = 32
+    vertices: int = 1024
 
 
 def _mask(values: ArrayLike, width: int | None, height: int | None) -> np.ndarray:
@@ -100,8 +120,8 @@ def split_holes(polygon: shapely.Polygon) -> list[shapely.Polygon]:
 
 def grid_polygons(values: ArrayLike, resolution: float, origin: Sequence[float] = (0.0, 0.0),
                   threshold: int = DEFAULT_THRESHOLD, *, width: int | None = None,
-                  height: int | None = None, workspace: Bounds | None = None
-                  ) -> list[np.ndarray]:
+                  height: int | None = None, workspace: Bounds | None = None,
+                  caps: MaskCaps | None = None) -> list[np.ndarray]:
     """Vertices (V, 2), counter-clockwise, of hole-free polygons whose union is exactly the
     union of the keep-out cells (value >= threshold; -1 unknown is free), clipped to
     `workspace` if given. Empty if no cell is keep-out.
@@ -109,22 +129,50 @@ def grid_polygons(values: ArrayLike, resolution: float, origin: Sequence[float] 
     Runs of cells become rectangles, shapely merges them, and collinear vertices are dropped.
     A region with a hole (a ring of cells) comes out as several pieces (`split_holes`), so every
     result is a simple polygon that `validate_polygon`, `ZoneSet.from_polygons`, the zone topic
-    and the renderer take as it is.
+    and the renderer take as it is. With `caps`, a mask that would cost more is refused
+    (ValueError saying which cap) before the step that cap bounds.
     """
+    if caps is not None and width is not None and height is not None \
+            and width * height > caps.cells:
+        raise ValueError(f"{width} x {height} cells, more than the {caps.cells} allowed")
     grid = _mask(values, width, height)
     res, ox, oy = _check_cells(resolution, origin)
     if not 0 < threshold <= 100:
         raise ValueError(f"threshold must be in (0, 100], got {threshold}")
+    if caps is not None and grid.size > caps.cells:
+        raise ValueError(f"{grid.size} cells, more than the {caps.cells} allowed")
+    keepout = grid >= threshold
+    if workspace is not None:  # cells wholly outside the workspace cost nothing to refuse
+        keepout = keepout & _cells_meeting(grid.shape, res, ox, oy, workspace)
+    rectangles = _rectangles(keepout)
+    if caps is not None and len(rectangles) > caps.rectangles:
+        raise ValueError(f"{len(rectangles)} rectangles of keep-out cells, more than the "
+                         f"{caps.rectangles} allowed (a finer pattern than the node can hold)")
     boxes = [shapely.box(ox + c0 * res, oy + r0 * res, ox + c1 * res, oy + r1 * res)
-             for r0, r1, c0, c1 in _rectangles(grid >= threshold)]
+             for r0, r1, c0, c1 in rectangles]
     union = shapely.union_all(boxes)
     if workspace is not None:
         union = union.intersection(shapely.box(*workspace))
     union = shapely.simplify(union, 0.0)
     parts = [p for p in shapely.get_parts(union) if isinstance(p, shapely.Polygon) and p.area > 0]
     pieces = [piece for part in parts for piece in split_holes(part)]
+    if caps is not None:
+        vertices = sum(len(p.exterior.coords) - 1 for p in pieces)
+        if len(pieces) > caps.pieces or vertices > caps.vertices:
+            raise ValueError(f"{len(pieces)} pieces of {vertices} vertices in all, more than "
+                             f"the {caps.pieces} pieces or {caps.vertices} vertices allowed")
     return [np.asarray(shapely.orient_polygons(p, exterior_cw=False).exterior.coords)[:-1]
             for p in pieces]
+
+
+def _cells_meeting(shape: tuple[int, int], res: float, ox: float, oy: float,
+                   workspace: Bounds) -> np.ndarray:
+    """(H, W) True for the cells that overlap the workspace with some area."""
+    x_min, y_min, x_max, y_max = workspace
+    rows, cols = np.arange(shape[0]), np.arange(shape[1])
+    cols_in = (ox + cols * res < x_max) & (ox + (cols + 1) * res > x_min)
+    rows_in = (oy + rows * res < y_max) & (oy + (rows + 1) * res > y_min)
+    return rows_in[:, None] & cols_in[None, :]
 
 
 def rasterize(polygons: Iterable[ArrayLike | shapely.Geometry], resolution: float,
@@ -201,3 +249,84 @@ def read_pgm(path: str | Path, negate: bool = False) -> np.ndarray:
     pixels = pixels[: width * height].reshape(height, width).astype(np.float64)
     darkness = pixels / maxval if negate else (maxval - pixels) / maxval
     return np.rint(100 * darkness).astype(np.int8)
+
+
+@dataclass(frozen=True)
+class BuiltMask:
+    """A keep-out mask built by `MaskBuilder`: its pieces, or why it was refused."""
+
+    sequence: int  # which `submit` it answers
+    polygons: list[np.ndarray] | None  # None: refused
+    reason: str = ""
+    stamp: float | None = None  # the mask message's stamp, passed through
+    seconds: float = 0.0  # how long the build took
+
+
+def build_mask(grid: dict, caps: MaskCaps, workspace: Bounds | None, sequence: int = 0,
+               stamp: float | None = None) -> BuiltMask:
+    """`grid_polygons(**grid)` under `caps`, timed; any fault becomes the refusal's reason."""
+    started = time.perf_counter()
+    try:
+        polygons = grid_polygons(**grid, workspace=workspace, caps=caps)
+        built = BuiltMask(sequence, polygons, stamp=stamp)
+    except ValueError as error:
+        built = BuiltMask(sequence, None, " ".join(str(error).split()), stamp)
+    except Exception as error:  # a mask must never end the builder's thread
+        built = BuiltMask(sequence, None, f"{type(error).__name__}: {error}", stamp)
+    return replace(built, seconds=time.perf_counter() - started)
+
+
+class MaskBuilder:
+    """Builds keep-out masks on a thread of its own, so that the thread which answers zones and
+    observations never waits for one: a fine mask costs a scan and a union that a zone dropped
+    meanwhile must not queue behind.
+
+    Only the newest mask matters (a mask replaces the previous one): `submit` replaces one not
+    started yet, and a result whose mask was superseded while it was built is not handed over.
+    `on_built` is called on the builder's thread with each `BuiltMask`; the owner applies it on
+    its own thread. Like tf2's listener, the helper owns its thread; `shutdown` ends it.
+    """
+
+    def __init__(self, on_built: Callable[[BuiltMask], None], caps: MaskCaps = MaskCaps(),
+                 workspace: Bounds | None = None) -> None:
+        self._on_built, self.caps, self.workspace = on_built, caps, workspace
+        self._wake = threading.Condition()
+        self._job: tuple[int, dict, float | None] | None = None
+        self._sequence = 0
+        self._stopping = False
+        self.building = False  # a mask is being built now
+        self._thread = threading.Thread(target=self._run, name="mask_builder", daemon=True)
+        self._thread.start()
+
+    def submit(self, stamp: float | None = None, **grid: object) -> int:
+        """Build `grid_polygons(**grid)` under the caps; returns the mask's sequence number."""
+        with self._wake:
+            self._sequence += 1
+            self._job = (self._sequence, grid, stamp)
+            self._wake.notify()
+            return self._sequence
+
+    @property
+    def latest(self) -> int:
+        """The sequence number of the newest mask submitted."""
+        return self._sequence
+
+    def shutdown(self, timeout: float = 5.0) -> None:
+        with self._wake:
+            self._stopping = True
+            self._wake.notify()
+        self._thread.join(timeout)
+
+    def _run(self) -> None:
+        while True:
+            with self._wake:
+                while self._job is None and not self._stopping:
+                    self._wake.wait()
+                if self._stopping:
+                    return
+                (sequence, grid, stamp), self._job = self._job, None
+                self.building = True
+            built = build_mask(grid, self.caps, self.workspace, sequence, stamp)
+            self.building = False
+            if sequence == self._sequence:  # not superseded while it was built
+                self._on_built(built)

@@ -2,16 +2,27 @@
 
 from __future__ import annotations
 
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import shapely
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 from constrained_diffusion_ros.zones import ZoneSet, rectangle, validate_polygon
-from constrained_diffusion_ros.zones.grid import grid_polygons, rasterize, read_pgm
+from constrained_diffusion_ros.zones.grid import (
+    BuiltMask,
+    MaskBuilder,
+    MaskCaps,
+    grid_polygons,
+    rasterize,
+    read_pgm,
+)
 
 WORKSPACE = (0.0, 0.0, 512.0, 512.0)
 
@@ -121,3 +132,102 @@ def test_read_pgm_as_map_server_reads_it(tmp_path: Path) -> None:
     (tmp_path / "short.pgm").write_bytes(b"P5\n3 2\n255\n" + bytes(4))
     with pytest.raises(ValueError, match="4 pixels"):
         read_pgm(tmp_path / "short.pgm")
+
+
+# -- what a mask may cost --------------------------------------------------------------------
+
+def checkerboard(cells: int) -> np.ndarray:
+    return (np.add.outer(np.arange(cells), np.arange(cells)) % 2 == 0).astype(np.int8) * 100
+
+
+@pytest.mark.parametrize("mask, caps, cap", [
+    (checkerboard(128), MaskCaps(), "rectangles"),  # 8,192 pieces: the node froze for minutes
+    (np.zeros((5000, 5000), np.int8), MaskCaps(), "cells"),
+    (checkerboard(16), MaskCaps(pieces=32), "pieces"),  # 128 pieces
+    (np.kron(checkerboard(8)[:, :3], np.ones((1, 1), np.int8)), MaskCaps(vertices=64),
+     "vertices"),  # 12 squares, 48 vertices; below
+], ids=["rectangles", "cells", "pieces", "vertices"])
+def test_a_mask_past_a_cap_is_refused_in_one_line_saying_which(mask, caps, cap) -> None:
+    if cap == "vertices":  # under both caps first, then over the vertices cap
+        assert len(grid_polygons(mask, 4.0, caps=caps)) == 12
+        caps = MaskCaps(vertices=47)
+    started = time.perf_counter()
+    with pytest.raises(ValueError, match=cap) as refused:
+        grid_polygons(mask, 4.0, workspace=WORKSPACE, caps=caps)
+    assert "\n" not in str(refused.value)
+    assert time.perf_counter() - started < 2.0  # refused before the union, not after
+
+
+def test_cells_outside_the_workspace_cost_nothing() -> None:
+    """A fine pattern wholly beyond the workspace is dropped before the caps count it."""
+    mask = np.zeros((256, 256), np.int8)
+    mask[:, 200:] = checkerboard(256)[:, 200:]  # x from 400 px: beyond 512 at 2 px cells
+    mask[:, :200] = 0
+    far = grid_polygons(mask, 4.0, origin=(0.0, 0.0), workspace=WORKSPACE,
+                        caps=MaskCaps(rectangles=64))  # columns 200.. start at x = 800
+    assert far == []
+
+
+BUILD_BOUND_S = 2.0  # a mask up to the caps, on one core of the CI machine, with slack
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(1, 256), st.integers(1, 256), st.floats(0.5, 8.0), st.integers(0, 2**32 - 1))
+def test_random_masks_up_to_the_caps_are_built_or_refused_within_the_bound(
+        width: int, height: int, resolution: float, seed: int) -> None:
+    """Dense noise, blobs or stripes: built under the caps (or refused by one) in well under
+    `BUILD_BOUND_S`, and what is built respects them."""
+    rng = np.random.default_rng(seed)
+    kind = seed % 3
+    if kind == 0:
+        mask = (rng.random((height, width)) < 0.5).astype(np.int8) * 100
+    elif kind == 1:
+        mask = np.zeros((height, width), np.int8)
+        for _ in range(rng.integers(1, 40)):
+            r, c = rng.integers(0, height), rng.integers(0, width)
+            mask[r:r + rng.integers(1, 20), c:c + rng.integers(1, 20)] = 100
+    else:
+        mask = ((np.arange(width) // max(1, seed % 7)) % 2 == 0)[None].repeat(height, 0)
+        mask = mask.astype(np.int8) * 100
+    caps = MaskCaps()
+    started = time.perf_counter()
+    try:
+        polygons = grid_polygons(mask, resolution, workspace=WORKSPACE, caps=caps)
+    except ValueError as refused:
+        assert any(cap in str(refused) for cap in ("rectangles", "pieces", "vertices"))
+    else:
+        assert len(polygons) <= caps.pieces
+        assert sum(len(p) for p in polygons) <= caps.vertices
+    assert time.perf_counter() - started < BUILD_BOUND_S
+
+
+def test_the_mask_builder_builds_off_the_callers_thread_and_only_the_newest() -> None:
+    """The caller returns at once; a mask superseded before it is built is never handed over."""
+    built: list[BuiltMask] = []
+    done = threading.Event()
+    threads: set[str] = set()
+
+    def on_built(mask: BuiltMask) -> None:
+        threads.add(threading.current_thread().name)
+        built.append(mask)
+        done.set()
+
+    builder = MaskBuilder(on_built, MaskCaps(), WORKSPACE)
+    try:
+        started = time.perf_counter()
+        builder.submit(values=checkerboard(128), resolution=4.0)  # refused: too fine
+        square = np.zeros((128, 128), np.int8)
+        square[10:20, 10:20] = 100
+        last = builder.submit(1.5, values=square, resolution=4.0)
+        assert time.perf_counter() - started < 0.05  # nothing built on this thread
+        assert done.wait(10.0)
+        deadline = time.monotonic() + 10.0
+        while builder.building and time.monotonic() < deadline:
+            time.sleep(0.01)
+        newest = built[-1]
+        assert newest.sequence == last and newest.stamp == 1.5 and newest.polygons is not None
+        assert len(newest.polygons) == 1
+        assert all(m.sequence == last or m.polygons is None for m in built)
+        assert threads == {"mask_builder"}
+    finally:
+        builder.shutdown()

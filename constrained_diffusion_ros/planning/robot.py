@@ -52,6 +52,32 @@ class RobotModel:
         points = np.asarray(points)
         return ((points < (x_min, y_min)) | (points > (x_max, y_max))).any(axis=-1)
 
+    def implausible(self, position: np.ndarray, previous: np.ndarray | None = None,
+                    seconds: float = 0.0) -> str | None:
+        """Why a reported pusher position cannot be this robot's (None: it can be).
+
+        Outside the workspace by more than the pusher's radius, or farther from `previous`
+        (reported `seconds` before) than the PD law can carry it: with setpoints in the
+        workspace, |setpoint - position| <= D (its diagonal), so the speed never exceeds
+        kp D / kv (where the acceleration would turn against it), with a quarter's slack. A
+        position refused here is a sensor fault or an attack, never a place to hold the pusher.
+        """
+        position = np.asarray(position, dtype=float)
+        x_min, y_min, x_max, y_max = self.workspace
+        grown = self.pusher_radius
+        if not np.all(np.isfinite(position)) or np.any(position < (x_min - grown, y_min - grown)) \
+                or np.any(position > (x_max + grown, y_max + grown)):
+            return f"pusher reported at {np.round(position, 1).tolist()}, outside the workspace"
+        if previous is None or seconds <= 0 or self.kv <= 0:
+            return None
+        diagonal = float(np.hypot(x_max - x_min, y_max - y_min))
+        reach = 1.25 * self.kp * diagonal / self.kv * seconds + grown
+        jump = float(np.linalg.norm(position - np.asarray(previous, dtype=float)))
+        if jump > reach:
+            return (f"pusher reported {jump:.0f} px from where it was {seconds:.2f} s before, "
+                    f"farther than it can move ({reach:.0f} px)")
+        return None
+
     def pusher(self, observations: np.ndarray) -> np.ndarray:
         """(..., 2) pusher positions in (..., obs_dim) observations (numpy or torch)."""
         start, stop = self.pusher_in_observation

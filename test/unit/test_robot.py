@@ -42,3 +42,27 @@ def test_a_robot_that_makes_no_sense_is_refused(change: dict) -> None:
     fields = {**PUSHT_ROBOT.__dict__, **change}
     with pytest.raises(ValueError, match=r"robot|pusher"):
         RobotModel(**fields)
+
+
+@pytest.mark.parametrize("position, previous, seconds, why", [
+    ((1e6, 1e6), None, 0.0, "outside the workspace"),
+    ((-300.0, 200.0), None, 0.0, "outside the workspace"),
+    ((float("nan"), 200.0), None, 0.0, "outside the workspace"),
+    ((500.0, 500.0), (12.0, 12.0), 0.1, "farther than it can move"),
+])
+def test_a_pusher_no_pd_robot_can_be_is_named_implausible(position, previous, seconds,
+                                                          why) -> None:
+    assert why in PUSHT_ROBOT.implausible(np.array(position), previous, seconds)
+
+
+def test_every_pusher_the_simulator_reports_is_plausible() -> None:
+    """Driven corner to corner with the largest setpoint jumps the workspace allows, the
+    simulated pusher never moves farther than `implausible` allows."""
+    sim = PushTSim()
+    sim.set_state([20.0, 20.0, 300.0, 300.0, 0.0])
+    previous = sim.state[:2].copy()
+    for setpoint in [(512.0, 512.0), (0.0, 0.0), (512.0, 0.0), (0.0, 512.0)] * 3:
+        sim.step(np.array(setpoint))
+        position = sim.state[:2].copy()
+        assert PUSHT_ROBOT.implausible(position, previous, 1 / PUSHT_ROBOT.control_hz) is None
+        previous = position

@@ -61,11 +61,13 @@ def validate_polygon(vertices: ArrayLike, label: str = "polygon",
     distinct = np.unique(v, axis=0)
     if len(distinct) < 3:
         raise ValueError(f"{label}: needs at least 3 distinct vertices, got {len(distinct)}")
-    if np.linalg.matrix_rank(distinct - distinct.mean(axis=0)) < 2:
-        raise ValueError(f"{label}: zero area, all vertices are collinear")
     polygon = shapely.Polygon(v)
     reason = shapely.is_valid_reason(polygon)
+    # Judged on the polygon, not by rank: a vertex at 1e30 swamps the others in a rank test
+    # and calls a zone with hundreds of px^2 in the workspace collinear (the clip keeps them).
     if reason != "Valid Geometry":
+        if np.linalg.matrix_rank(distinct - distinct.mean(axis=0)) < 2:
+            raise ValueError(f"{label}: zero area, all vertices are collinear")
         raise ValueError(f"{label}: invalid polygon, {reason}")
     if workspace is not None:
         return clip_to_workspace(polygon, workspace, label)

@@ -9,7 +9,7 @@ import pytest
 import shapely
 import torch
 
-from constrained_diffusion_ros.zones import RestrictedArea, ZoneSet, rectangle
+from constrained_diffusion_ros.zones import RestrictedArea, ZoneSet, rectangle, validate_polygon
 from constrained_diffusion_ros.zones.geometry import leaves_no_room
 
 L_SHAPE = np.array([[100, 100], [300, 100], [300, 160], [160, 160], [160, 400], [100, 400]])
@@ -254,3 +254,10 @@ def test_leaves_no_room_counts_every_piece_grown() -> None:
     assert not leaves_no_room(cells.difference(gap), (0.0, 0.0, 512.0, 512.0), 15.0)
     assert leaves_no_room(shapely.box(-10, -10, 600, 600), (0.0, 0.0, 512.0, 512.0), 0.0)
     assert not leaves_no_room(shapely.box(0, 0, 100, 100), (0.0, 0.0, 512.0, 512.0), 15.0)
+
+
+def test_a_zone_with_a_far_vertex_is_clipped_then_judged_not_called_collinear() -> None:
+    """A vertex at 1e30 swamped a rank test, and a zone with 32,400 px^2 in the workspace was
+    refused as "all vertices are collinear"; clipped first, it is accepted as that part."""
+    zone = validate_polygon([[300, 200], [1e30, 250], [400, 400]], "zone", (0, 0, 512, 512))
+    assert zone.area == pytest.approx(32400.0)

@@ -134,14 +134,19 @@ def path_of(msg) -> np.ndarray:
 def zone_markers(outlines: Mapping[int, np.ndarray], stamp, namespace: str = "zones"):
     """One closed red line strip per zone for viewers, its marker id the zone's id (in marker
     namespace `namespace`), outline as received; after a DELETEALL that clears the previous
-    set."""
+    set. A zone whose id a marker cannot carry (a name such as "keepout/3", or an integer beyond
+    int32, as PolygonInstance ids are int64) goes in `<namespace>/named` with a hashed id, so
+    it never shares a marker with a zone of the plain namespace."""
     from geometry_msgs.msg import Point
     from visualization_msgs.msg import Marker, MarkerArray
 
-    markers = MarkerArray(markers=[Marker(action=Marker.DELETEALL, ns=namespace)])
+    markers = MarkerArray(markers=[Marker(action=Marker.DELETEALL, ns=namespace),
+                                   Marker(action=Marker.DELETEALL, ns=f"{namespace}/named")])
     for zone_id, polygon in outlines.items():
+        plain = _fits_int32(zone_id)
         marker = _header(Marker(type=Marker.LINE_STRIP, action=Marker.ADD,
-                                id=marker_id(zone_id), ns=namespace), stamp)
+                                id=marker_id(zone_id),
+                                ns=namespace if plain else f"{namespace}/named"), stamp)
         marker.scale.x = 2.0
         marker.color.r, marker.color.a = 1.0, 1.0
         marker.pose.orientation.w = 1.0
@@ -151,10 +156,14 @@ def zone_markers(outlines: Mapping[int, np.ndarray], stamp, namespace: str = "zo
     return markers
 
 
+def _fits_int32(zone_id: int | str) -> bool:
+    return isinstance(zone_id, int) and -2**31 <= zone_id < 2**31
+
+
 def marker_id(zone_id: int | str) -> int:
-    """A zone's marker id: the zone id itself, or for a named zone ("keepout/3") a stable
-    31-bit hash of its name."""
-    if isinstance(zone_id, int):
+    """A zone's marker id: the zone id itself where a marker's int32 holds it, else a stable
+    31-bit hash of the id's text (in the `named` marker namespace, see `zone_markers`)."""
+    if _fits_int32(zone_id):
         return zone_id
     return zlib.crc32(str(zone_id).encode()) & 0x7FFFFFFF
 

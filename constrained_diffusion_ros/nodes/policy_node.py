@@ -58,7 +58,13 @@ from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones.area import RestrictedArea
 from constrained_diffusion_ros.zones.geometry import leaves_no_room
-from constrained_diffusion_ros.zones.grid import DEFAULT_THRESHOLD, grid_polygons
+from constrained_diffusion_ros.zones.grid import (
+    DEFAULT_THRESHOLD,
+    BuiltMask,
+    MaskBuilder,
+    MaskCaps,
+    build_mask,
+)
 from constrained_diffusion_ros.zones.live import (
     DEFAULT_MAX_VERTICES,
     DEFAULT_MAX_ZONES,
@@ -87,8 +93,8 @@ ZONE_BATCH_MAX = 10_000  # zone messages taken in one callback at most
 PENDING_HALVES = 64  # observation halves (keypoints or pusher) kept waiting for their other half
 MARKER_NAMESPACE = "zones"  # zone markers: marker namespace <node namespace>/zones, id = zone id
 # Their rise since the last report sets the diagnostic level.
-HEALTH_COUNTERS = ("violations", "unsound_setpoints", "zones_refused", "held_steps",
-                   "planning_errors")
+HEALTH_COUNTERS = ("violations", "unsound_setpoints", "zones_refused", "masks_refused",
+                   "observations_refused", "held_steps", "planning_errors")
 STATUS_PERIOD_S = 0.5  # realtime: status this often (zone markers: at most once per tick)
 
 PARAMETERS = (
@@ -129,6 +135,10 @@ PARAMETERS = (
           read_only=True, low=1),
     Param("max_vertices", DEFAULT_MAX_VERTICES, "vertices per zone at most", read_only=True,
           low=3),
+    Param("max_mask_pieces", MaskCaps.pieces, "keep-out mask: pieces (separate regions) at "
+          "most; a finer mask is refused", read_only=True, low=1),
+    Param("max_mask_vertices", MaskCaps.vertices, "keep-out mask: vertices of all its pieces "
+          "at most; a finer mask is refused", read_only=True, low=4),
     Param("keepout_threshold", DEFAULT_THRESHOLD, "keep-out mask cells at or above it are "
           "restricted (nav2's occupied threshold, 0..100)", low=1, high=100),
     Param("restricted_area", "", "a plug-in check always in force: 'package.module:Class' or "
@@ -216,7 +226,8 @@ class PolicyNode(Node):
             self.get_fully_qualified_name().strip("/").replace("/", "__") + ".cleared")
         self.zones.cleared = self._remembered_clears()
         self.zone_counts = {"zone_messages": 0, "zones_applied": 0, "zones_refused": 0,
-                            "zones_stale": 0, "zone_batches": 0}
+                            "zones_stale": 0, "zone_batches": 0, "masks_applied": 0,
+                            "masks_refused": 0}
         self.noise_seed = values["noise_seed"]
         self.generator = torch.Generator().manual_seed(self.noise_seed)
         self.controller: RealtimeController | None = None
@@ -242,6 +253,14 @@ class PolicyNode(Node):
         self._zone_messages_seen: OrderedDict[tuple, None] = OrderedDict()
         self._subscribe("keepout_mask", OccupancyGrid, self._on_keepout_mask)
         self.keepout_ids: list[str] = []
+        self.mask_caps = MaskCaps(pieces=values["max_mask_pieces"],
+                                  vertices=values["max_mask_vertices"])
+        self.mask_builder: MaskBuilder | None = None
+        if self.mode == "realtime":  # masks built off the thread that answers zones
+            self._mask_ready = self.create_guard_condition(self._on_mask_ready)
+            self._built_mask: BuiltMask | None = None
+            self.mask_builder = MaskBuilder(self._on_mask_built, self.mask_caps,
+                                            self.robot.workspace)
         self._subscribe("keypoints", PolygonStamped, self._on_keypoints)
         self._subscribe("pusher", PointStamped, self._on_pusher)
         self.create_service(Trigger, SERVICES["clear_zones"].name, self._on_clear)
@@ -273,7 +292,10 @@ class PolicyNode(Node):
         self.violations = 0
         self.unsound_setpoints = 0  # non-finite or outside the workspace: the pusher held
         self.no_free_space = False  # the zones cover the whole workspace
-        self.latest_pusher: np.ndarray | None = None
+        self.latest_pusher: np.ndarray | None = None  # the last plausible one
+        self.pusher_stamp: float | None = None  # its observation's stamp
+        self.last_safe_setpoint: np.ndarray | None = None
+        self.observations_refused = 0
         self.zone_change_time: float | None = None
         self.replan_latency_ms = float("nan")
         self.zone_to_setpoint_ms = float("nan")  # the last safe setpoint sent for a zone
@@ -289,6 +311,8 @@ class PolicyNode(Node):
             f"{self.config.name!r}")
 
     def destroy_node(self) -> None:
+        if self.mask_builder is not None:
+            self.mask_builder.shutdown()
         if self.controller is not None:
             self.clock.shutdown()
             self.controller.shutdown()
@@ -356,11 +380,12 @@ class PolicyNode(Node):
                 self.setpoint_pub.publish(self.last_setpoint)
             return
         observation = self._take_observation(stamp)
-        if observation is None:
-            return
         if stamp < self.last_stamp or stamp == 0.0:  # the simulator was reset: a new episode
             self.chunk_executor.reset(self.noise_seed)
         self.last_stamp = stamp
+        if observation is None:
+            self._refused_observation_answer(stamp_msg)
+            return
         step = step_of_stamp(stamp_msg, self.robot.control_hz)
         started = time.perf_counter()
         setpoint = self.chunk_executor.act(observation[None].astype(np.float32), step)[0]
@@ -372,29 +397,49 @@ class PolicyNode(Node):
 
     def _take_observation(self, stamp: float) -> np.ndarray | None:
         """The observation of `stamp` from its two messages, older halves dropped; None (with
-        a warning) when it is not finite."""
+        a warning, counted) when it is not finite or its pusher cannot be the robot's (out of
+        the workspace, or a jump no PD pusher can make): nothing is planned from it, and the
+        last safe setpoint stays."""
         observation = pusht_observation(self.keypoints.pop(stamp), self.pushers.pop(stamp))
         for pending in (self.keypoints, self.pushers):
             for old in [s for s in pending if s < stamp]:
                 del pending[old]
-        if not np.all(np.isfinite(observation)):
-            self.get_logger().warning("observation with NaN/inf ignored")
+        pusher = self.robot.pusher(observation).astype(float)
+        new_episode = self.pusher_stamp is None or stamp <= self.pusher_stamp
+        reason = "NaN/inf" if not np.all(np.isfinite(observation)) else \
+            self.robot.implausible(pusher, None if new_episode else self.latest_pusher,
+                                   0.0 if new_episode else stamp - self.pusher_stamp)
+        if reason is not None:
+            self.observations_refused += 1
+            self.get_logger().warning(f"observation refused, last safe setpoint held: {reason}",
+                                      throttle_duration_sec=1.0)
             return None
-        self.latest_pusher = self.robot.pusher(observation).astype(float)
+        self.latest_pusher, self.pusher_stamp = pusher, stamp
         return observation
 
     def _sendable(self, setpoint: np.ndarray) -> np.ndarray:
         """Never a non-finite or out-of-workspace setpoint, nor any while zones leave the
-        pusher no free space: the pusher's own position is held instead, and reported as
-        ERROR until setpoints are sound again."""
+        pusher no free space; reported as ERROR until setpoints are sound again. In their
+        place: while there is no free space, the pusher's own (plausible) position; else the
+        last setpoint sent, if it is still outside every zone; else the pusher's position."""
         if not self.no_free_space and np.all(np.isfinite(setpoint)) \
                 and not self.robot.outside(setpoint):
+            self.last_safe_setpoint = setpoint
             return setpoint
-        x_min, y_min, x_max, y_max = self.robot.workspace
         self.unsound_setpoints += 1
         self.get_logger().error(f"no sound setpoint ({setpoint.tolist()}): holding the pusher",
                                 throttle_duration_sec=1.0)
+        last = self.last_safe_setpoint
+        if not self.no_free_space and last is not None and not self._inside_zone(last):
+            return last
+        x_min, y_min, x_max, y_max = self.robot.workspace
         return np.clip(self.latest_pusher, (x_min, y_min), (x_max, y_max))
+
+    def _refused_observation_answer(self, stamp_msg) -> None:
+        """Lockstep: the simulator waits for an answer to every observation; a refused one gets
+        the last safe setpoint (none before the first)."""
+        if self.last_safe_setpoint is not None:
+            self._publish_setpoint(self.last_safe_setpoint, stamp_msg)
 
     def _on_tick(self) -> None:
         """Realtime, on the clock's thread: exactly one setpoint per tick, the one computed
@@ -453,9 +498,12 @@ class PolicyNode(Node):
         self._count_violation(setpoint)
 
     def _count_violation(self, setpoint: np.ndarray) -> None:
-        area = self.zones.area_at(0)
-        if area is not None and bool(area.contains(torch.tensor(setpoint[None]))[0]):
+        if self._inside_zone(setpoint):
             self.violations += 1
+
+    def _inside_zone(self, setpoint: np.ndarray) -> bool:
+        area = self.zones.area_at(0)
+        return area is not None and bool(area.contains(torch.tensor(setpoint[None]))[0])
 
     def _after_plan(self, chunk: np.ndarray) -> None:
         if self.zone_change_time is not None:
@@ -466,6 +514,7 @@ class PolicyNode(Node):
     def _publish_status(self, planning_ms: float) -> None:
         values = {"configuration": self.config.name, "mode": self.mode,
                   "violations": self.violations, "unsound_setpoints": self.unsound_setpoints,
+                  "observations_refused": self.observations_refused,
                   "plans": self.chunk_executor.stats.planner_calls,
                   "planning_ms": f"{planning_ms:.1f}",
                   "replan_latency_ms": f"{self.replan_latency_ms:.1f}",
@@ -511,6 +560,11 @@ class PolicyNode(Node):
         problems = []
         if since["zones_refused"]:
             problems.append(f"{since['zones_refused']} zone message(s) refused")
+        if since["masks_refused"]:
+            problems.append(f"{since['masks_refused']} keep-out mask(s) refused")
+        if since["observations_refused"]:
+            problems.append(f"{since['observations_refused']} observation(s) refused (not "
+                            f"finite, or a pusher that cannot be the robot's)")
         if since["held_steps"]:
             problems.append(f"planning missed its deadline ({since['held_steps']} step(s) "
                             f"with no waypoint)")
@@ -549,30 +603,56 @@ class PolicyNode(Node):
 
     def _on_keepout_mask(self, msg: OccupancyGrid) -> None:
         """A keep-out mask: its restricted cells become zones ("keepout/<k>", exact polygons)
-        in place of the previous mask's; they do not expire."""
+        in place of the previous mask's; they do not expire. Realtime: built by the mask
+        builder's thread, so zones and observations are answered meanwhile; lockstep: here, so
+        a trial stays deterministic. Either way under the caps, which bound the build."""
         if msg.header.frame_id not in ("", FRAME_ID):
-            self.get_logger().warning(f"keep-out mask refused: frame "
-                                      f"{one_line(repr(msg.header.frame_id), 80)} is not "
-                                      f"{FRAME_ID!r}")
+            self._refuse_mask(f"frame {one_line(repr(msg.header.frame_id), 80)} is not "
+                              f"{FRAME_ID!r}")
             return
         info = msg.info
-        try:
-            polygons = grid_polygons(
-                np.asarray(msg.data, dtype=np.int8), info.resolution,
-                (info.origin.position.x, info.origin.position.y),
-                self.get_parameter("keepout_threshold").value, width=info.width,
-                height=info.height, workspace=self.robot.workspace)
-        except ValueError as error:
-            self.get_logger().warning(f"keep-out mask refused: {one_line(error)}")
+        grid = {"values": np.asarray(msg.data, dtype=np.int8), "resolution": info.resolution,
+                "origin": (info.origin.position.x, info.origin.position.y),
+                "threshold": self.get_parameter("keepout_threshold").value,
+                "width": info.width, "height": info.height}
+        stamp = stamp_seconds(msg.header.stamp) or None
+        if self.mask_builder is not None:
+            self.mask_builder.submit(stamp, **grid)
+        else:
+            self._take_mask(build_mask(grid, self.mask_caps, self.robot.workspace,
+                                       stamp=stamp))
+
+    def _on_mask_built(self, built: BuiltMask) -> None:
+        """On the builder's thread: hand the mask to the executor's thread."""
+        self._built_mask = built
+        self._mask_ready.trigger()
+
+    def _on_mask_ready(self) -> None:
+        built, self._built_mask = self._built_mask, None
+        if built is not None and built.sequence == self.mask_builder.latest:
+            self._take_mask(built)
+
+    def _refuse_mask(self, reason: str) -> None:
+        self.zone_counts["masks_refused"] += 1
+        self.get_logger().warning(f"keep-out mask refused, zones in force kept: {reason}")
+
+    def _take_mask(self, built: BuiltMask) -> None:
+        if built.polygons is None:
+            self._refuse_mask(built.reason)
             return
-        ids = [f"keepout/{k}" for k in range(len(polygons))]
+        ids = [f"keepout/{k}" for k in range(len(built.polygons))]
         removed = [(old, []) for old in self.keepout_ids if old not in ids]
-        # A mask's pieces are not messages: the caps on zone messages do not refuse them.
-        outcome = self.zones.apply([*removed, *zip(ids, polygons)], self._now(), capped=False)
-        self.keepout_ids = [i for i in ids if i not in dict(outcome.refused)]
+        # A mask's pieces are not messages: the caps on zone messages do not refuse them (the
+        # mask's own caps did). Its stamp goes with them, so a clear outlives a restart.
+        outcome = self.zones.apply([*removed, *((i, p, built.stamp) for i, p in
+                                                zip(ids, built.polygons))],
+                                   self._now(), capped=False)
+        in_force = set(self.zones.ids)
+        self.keepout_ids = [i for i in ids if i in in_force]
         self._count_zones(outcome, 0)
-        self.get_logger().info(f"keep-out mask {info.width} x {info.height} cells: "
-                               f"{len(self.keepout_ids)} zone(s)")
+        self.zone_counts["masks_applied"] += 1
+        self.get_logger().info(f"keep-out mask: {len(self.keepout_ids)} zone(s), built in "
+                               f"{1000 * built.seconds:.0f} ms")
         if outcome.changed:
             self._zones_changed()
 

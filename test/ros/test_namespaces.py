@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import pytest
 from geometry_msgs.msg import PolygonInstanceStamped
+from nav_msgs.msg import OccupancyGrid
 from rclpy.duration import Duration
 from rclpy.qos import DurabilityPolicy
 from ros_helpers import DISCOVERY_S, shown_zone_ids
@@ -13,8 +14,9 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from constrained_diffusion_ros.zones import rectangle
+from constrained_diffusion_ros.zones.grid import rasterize
 from msg_schemas import SERVICES, TOPICS, qos_profile
-from msg_schemas.conversions import zone_message
+from msg_schemas.conversions import occupancy_grid, zone_message
 
 ROBOTS = ("/robot1", "/robot2")
 SQUARE = rectangle(100, 100, 140, 140)
@@ -158,3 +160,42 @@ def test_a_restarted_policy_does_not_revive_a_cleared_zone(
     assert ros.spin_until(lambda: len(markers) > before and shown_zone_ids(markers) == [6]), \
         processes.logs()
     assert all(5 not in (shown_zone_ids([m]) or []) for m in markers[before:])
+
+
+def test_a_restarted_policy_does_not_revive_a_cleared_keepout_mask(
+        ros, processes, tiny_model, configurations_file) -> None:
+    """As for zones: a latched keep-out mask cleared by the service stays gone when the policy
+    restarts and the latched history hands it the same mask again."""
+    markers = markers_of(ros)
+    mask_topic = TOPICS["keepout_mask"]
+    masks = ros.node.create_publisher(OccupancyGrid, mask_topic.resolved("/pusht"),
+                                      qos_profile(mask_topic, "publisher"))
+    clear = ros.node.create_client(Trigger, SERVICES["clear_zones"].resolved("/pusht"))
+
+    def start() -> None:
+        processes.start("policy_node", model=tiny_model, configurations_file=configurations_file,
+                        configuration="fast_project")
+
+    def shown() -> int:
+        return len(shown_zone_ids(markers) or [])
+
+    mask = rasterize([SQUARE], 4.0, (0.0, 0.0), 128, 128)
+    start()
+    assert ros.spin_until(lambda: masks.get_subscription_count() == 1), processes.logs()
+    masks.publish(occupancy_grid(mask, 4.0, (0.0, 0.0), ros.node.get_clock().now().to_msg()))
+    assert ros.spin_until(lambda: shown() == 1), processes.logs()
+    assert clear.wait_for_service(timeout_sec=DISCOVERY_S)
+    future = clear.call_async(Trigger.Request())
+    assert ros.spin_until(future.done) and future.result().message == "cleared 1 zones"
+    assert ros.spin_until(lambda: shown() == 0)
+    assert processes.stop("policy_node") == 0
+    before = len(markers)
+    start()
+    zones = zone_publisher(ros)
+    assert ros.spin_until(lambda: masks.get_subscription_count() == 1
+                          and zones.get_subscription_count() == 2), processes.logs()
+    ros.spin_for(2.0)  # the latched mask is delivered on matching; it must not come back
+    publish(ros, zones, 6, offset=100.0)  # markers now: zone 6 and nothing else
+    assert ros.spin_until(lambda: len(markers) > before and shown_zone_ids(markers) == [6]), \
+        processes.logs()
+    assert all(shown_zone_ids([m]) == [6] for m in markers[before:]), processes.logs()

@@ -1,0 +1,168 @@
+"""Hostile and unlucky inputs to a running policy node, over real DDS: keep-out masks that cost
+more than the node can hold, and pusher reports no robot can make.
+
+The realtime node runs on a long tick (`TICK_S`), so "within one tick" is measured against a
+period much longer than anything the node legitimately needs, and a stalled executor (the
+failure these tests guard against: a fine mask froze it for minutes) shows as a missed tick.
+The test feeds observations itself with the pusher at `PUSHER`; the tiny policy's setpoints
+are noise-like, so a zone dropped on the latest one is a real test of the reaction.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+import shapely
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import Point32, PointStamped, PolygonInstanceStamped, PolygonStamped
+from nav_msgs.msg import OccupancyGrid
+from nav_msgs.msg import Path as PathMsg
+from ros_helpers import step_stamp
+
+from msg_schemas import FRAME_ID, TOPICS
+from msg_schemas.conversions import occupancy_grid
+from sim_bridge import AGENT_RADIUS
+
+TICK_S = 1.0
+PUSHER = (40.0, 470.0)
+
+
+def checkerboard(cells: int, rows: slice | None = None) -> np.ndarray:
+    """A (cells, cells) mask of alternating keep-out cells (every cell its own piece), in
+    `rows` only if given."""
+    board = np.zeros((cells, cells), dtype=np.int8)
+    pattern = (np.add.outer(np.arange(cells), np.arange(cells)) % 2 == 0) * 100
+    board[rows or slice(None)] = pattern[rows or slice(None)]
+    return board
+
+
+def status_values(report: DiagnosticArray) -> dict[str, str]:
+    return {kv.key: kv.value for kv in report.status[0].values}
+
+
+class RealtimeLink:
+    """A realtime policy node fed by the test: observations, zones and masks go in, setpoints
+    (with their arrival time) and statuses come out."""
+
+    def __init__(self, ros, processes, tiny_model, configurations_file) -> None:
+        self.ros = ros
+        self.arrivals: list[tuple[float, np.ndarray]] = []
+        ros.inbox("setpoint", PointStamped, lambda m: self.arrivals.append(
+            (time.monotonic(), np.array([m.point.x, m.point.y]))))
+        self.statuses = ros.inbox("diagnostics", DiagnosticArray)
+        self.plans = ros.inbox("plan", PathMsg)
+        self.zones = ros.publisher("zones", PolygonInstanceStamped)
+        self.masks = ros.publisher("keepout_mask", OccupancyGrid)
+        self.keypoints = ros.publisher("keypoints", PolygonStamped)
+        self.pusher = ros.publisher("pusher", PointStamped)
+        processes.start("policy_node", model=tiny_model, configurations_file=configurations_file,
+                        configuration="fast_safe", mode="realtime", rate_hz=1 / TICK_S)
+        self.processes = processes
+        self.step = 0
+        assert ros.spin_until(lambda: all(p.get_subscription_count() >= 1 for p in (
+            self.zones, self.masks, self.keypoints, self.pusher))
+            and ros.node.count_publishers(TOPICS["setpoint"].name) >= 1), processes.logs()
+
+    def observe(self, pusher: tuple[float, float] = PUSHER) -> None:
+        keypoints = PolygonStamped()
+        keypoints.header.stamp, keypoints.header.frame_id = step_stamp(self.step), FRAME_ID
+        keypoints.polygon.points = [Point32(x=256.0, y=256.0 + i, z=0.0) for i in range(9)]
+        message = PointStamped()
+        message.header = keypoints.header
+        message.point.x, message.point.y = pusher
+        self.keypoints.publish(keypoints)
+        self.pusher.publish(message)
+        self.step += 1
+
+    def planning(self) -> None:
+        """Observations until a plan is in and a tick has sent one of its waypoints."""
+        while not self.plans:
+            self.observe()
+            self.ros.spin_until(lambda: bool(self.plans), 0.5)
+        ticks = len(self.arrivals)
+        assert self.ros.spin_until(lambda: len(self.arrivals) > ticks, 2 * TICK_S + 5)
+
+    def drop_zone_on_setpoint(self, zone_id: int) -> tuple[float, shapely.Geometry]:
+        """A 30 px square zone on the latest setpoint; (when it was sent, the zone grown by
+        the pusher radius less half a px)."""
+        x, y = self.arrivals[-1][1]
+        zone = ((x - 15, y - 15), (x + 15, y - 15), (x + 15, y + 15), (x - 15, y + 15))
+        msg = PolygonInstanceStamped()
+        msg.header.frame_id, msg.polygon.id = FRAME_ID, zone_id
+        msg.polygon.polygon.points = [Point32(x=float(a), y=float(b), z=0.0) for a, b in zone]
+        sent = time.monotonic()
+        self.zones.publish(msg)
+        return sent, shapely.Polygon(zone).buffer(AGENT_RADIUS - 0.5)
+
+    def latest_status(self, predicate, timeout: float = 10.0) -> dict[str, str]:
+        assert self.ros.spin_until(lambda: self.statuses and predicate(
+            status_values(self.statuses[-1])), timeout), self.processes.logs()
+        return status_values(self.statuses[-1])
+
+
+@pytest.fixture
+def link(ros, processes, tiny_model, configurations_file) -> RealtimeLink:
+    return RealtimeLink(ros, processes, tiny_model, configurations_file)
+
+
+@pytest.mark.parametrize("mask, resolution", [
+    (checkerboard(128), 4.0),  # 8,192 pieces: froze the executor, 2 GB
+    (checkerboard(256, slice(192, 256)), 2.0),  # 64 rows of it: zones ignored for 200 s
+], ids=["checkerboard_128", "checkerboard_rows_256"])
+def test_a_mask_too_fine_to_hold_is_refused_and_a_zone_right_after_it_is_obeyed_in_a_tick(
+        link: RealtimeLink, mask: np.ndarray, resolution: float) -> None:
+    link.planning()
+    link.masks.publish(occupancy_grid(mask, resolution, (0.0, 0.0), step_stamp(0)))
+    before = len(link.arrivals)
+    sent, grown = link.drop_zone_on_setpoint(11)
+    # The safe setpoint for the zone comes at once, not with the next tick: the executor was
+    # not held by the mask.
+    assert link.ros.spin_until(lambda: len(link.arrivals) > before, TICK_S), \
+        link.processes.logs()
+    reaction, safe = link.arrivals[before]
+    assert reaction - sent < 0.5 * TICK_S
+    assert not grown.contains(shapely.Point(*safe))
+    status = link.latest_status(lambda v: v.get("masks_refused") == "1")
+    assert "11" in status["zone_ids"].split(",")
+    assert not any(i.startswith("keepout/") for i in status["zone_ids"].split(","))
+    # Ticks keep coming from the held, safe setpoint.
+    ticks = len(link.arrivals)
+    assert link.ros.spin_until(lambda: len(link.arrivals) > ticks + 1, 3 * TICK_S + 2)
+    assert not any(grown.contains(shapely.Point(*p)) for _, p in link.arrivals[before:])
+
+
+def test_a_mask_within_the_caps_is_built_while_zones_are_answered(link: RealtimeLink) -> None:
+    """Sixteen 20 px blocks: built off the executor and put in force as keepout/<k> zones."""
+    link.planning()
+    mask = np.zeros((128, 128), dtype=np.int8)
+    for k in range(16):
+        row, col = 8 * (k // 4) + 2, 8 * (k % 4) + 90
+        mask[row:row + 5, col:col + 5] = 100
+    link.masks.publish(occupancy_grid(mask, 4.0, (0.0, 0.0), step_stamp(0)))
+    # (A mask an earlier test latched may come first: only this one is ever applied.)
+    status = link.latest_status(lambda v: v.get("masks_applied") == "1")
+    assert sum(i.startswith("keepout/") for i in status["zone_ids"].split(",")) == 16
+
+
+def test_a_pusher_no_robot_can_be_is_refused_and_never_held_at(link: RealtimeLink) -> None:
+    """With no free space the node holds the pusher where it is. A pusher reported at
+    (1e6, 1e6) made that the clipped (512, 512), and at (-300, 200), (0, 200): commands to
+    places the robot never was. Refused, the hold stays where the plausible pusher was."""
+    link.planning()
+    everything = PolygonInstanceStamped()
+    everything.header.frame_id, everything.polygon.id = FRAME_ID, 13
+    everything.polygon.polygon.points = [Point32(x=x, y=y, z=0.0) for x, y in (
+        (-1e30, -1e30), (1e30, -1e30), (1e30, 1e30), (-1e30, 1e30))]
+    link.zones.publish(everything)
+    link.latest_status(lambda v: "13" in v["zone_ids"].split(","))
+    link.observe()  # a plausible pusher: held where it is
+    before = len(link.arrivals)
+    for pusher in [(1e6, 1e6), (-300.0, 200.0)] * 3:
+        link.observe(pusher)
+    assert link.ros.spin_until(lambda: len(link.arrivals) > before + 1, 3 * TICK_S + 2)
+    sent = [p for _, p in link.arrivals[before:]]
+    assert all(np.array_equal(p, PUSHER) for p in sent), sent
+    status = link.latest_status(lambda v: int(v.get("observations_refused", 0)) >= 6)
+    assert int(status["unsound_setpoints"]) >= 1  # the hold, reported as ERROR

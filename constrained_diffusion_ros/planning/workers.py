@@ -9,18 +9,23 @@ a server of its own. (On the 2-core VM of the README the two gave the same live 
 its noise.) Both take jobs the
 same way: `submit` replaces a job not yet started (only the newest request matters), a result
 goes to `on_result` with its job, `reseed` applies before the next job, `shutdown` stops and
-joins (like tf2_ros's listener, each owns its thread).
+joins (like tf2_ros's listener, each owns its thread). For the node's diagnostics both keep
+`error` (the last fault), `errors` (faults so far), `failed` (a fault since the last plan that
+arrived: nothing may be planning) and `restarts` (children started again after dying).
 """
 
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import logging
 import os
 import pickle
 import socket
+import struct
 import subprocess
 import sys
+import termios
 import threading
 import time
 from collections.abc import Callable
@@ -40,6 +45,11 @@ LOGGER = logging.getLogger(__name__)
 
 STARVED_SHARE = 0.25  # of a core, while planning: below it, idle priority starves the planner
 WATCH_PERIOD_S = 0.5  # how often the node looks at what the planning process gets
+IDLE_RETRY_S = 60.0  # at normal scheduling after starving, before idle priority is tried again
+IDLE_RETRY_MAX_S = 960.0  # the wait doubles at each try, up to this
+RESTART_LIMIT = 5  # children started in a row with no plan between them, before giving up
+RESTART_DELAY_S = 0.5  # before the first restart; doubled for each next one in a row
+RESTART_DELAY_MAX_S = 8.0
 
 
 @dataclass
@@ -97,6 +107,8 @@ class BackgroundPlanner:
         self._cancel = threading.Event()  # the plan in flight is no longer wanted
         self.error: BaseException | None = None  # the last fault
         self.errors = 0  # faults so far
+        self.failed = False  # a fault since the last plan offered
+        self.restarts = 0  # never: a fault of one plan does not end the thread
         self.cancelled = 0  # plans stopped in flight
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
@@ -147,22 +159,27 @@ class BackgroundPlanner:
             try:
                 began = time.perf_counter()
                 chunk = self._plan(job, self.generator, self._cancel.is_set)
+                self.failed = False  # before the owner hears of it: planning works again
                 self._on_result(PlanResult(job, chunk, time.perf_counter() - began))
             except Interrupted:
                 self.cancelled += 1
             except Exception as error:  # reported by the owner; the worker keeps serving
-                self.error, self.errors = error, self.errors + 1
+                self.error, self.errors, self.failed = error, self.errors + 1, True
                 LOGGER.exception("planning failed")
             finally:
                 with self._wake:
                     self._busy = False
 
 
-def _send(connection: Connection, kind: str, payload: object) -> None:
+def _message(kind: str, payload: object) -> bytes:
     """(kind, pickled payload): the kind always reads back, even where the payload cannot (a
     class the other side cannot import), so every job gets its reply."""
     data = pickle.dumps(payload, protocol=pickle.HIGHEST_PROTOCOL)
-    connection.send_bytes(pickle.dumps((kind, data), protocol=pickle.HIGHEST_PROTOCOL))
+    return pickle.dumps((kind, data), protocol=pickle.HIGHEST_PROTOCOL)
+
+
+def _send(connection: Connection, kind: str, payload: object) -> None:
+    connection.send_bytes(_message(kind, payload))
 
 
 def may_leave_idle(niceness: int) -> bool:
@@ -243,20 +260,40 @@ def serve(descriptor: int, threads: int, niceness: int, idle: bool = False) -> N
                                       time.perf_counter() - began))
 
 
+def _unread(connection: Connection) -> int:
+    """Bytes sent on a socket that its peer has not read yet (0 where that cannot be told)."""
+    try:
+        queued = fcntl.ioctl(connection.fileno(), termios.TIOCOUTQ, bytes(4))
+    except OSError:
+        return 0
+    return struct.unpack("i", queued)[0]
+
+
+def child_command(descriptor: int, threads: int, niceness: int, idle: bool) -> list[str]:
+    """The planning child's command line: a plain interpreter that runs `serve`."""
+    code = (f"from {__name__} import serve; "
+            f"serve({descriptor}, {threads}, {niceness}, {idle})")
+    return [sys.executable, "-c", code]
+
+
 class CpuShare:
     """The share of a core a process got while it worked on one job, over `period` s or more
     (its CPU time against the wall clock's); windows that span two jobs, or time without one,
-    are not judged: between jobs a planner rightly uses nothing."""
+    are not judged: between jobs a planner rightly uses nothing. Nor is a window in which the
+    process was seen stopped (SIGSTOP, a debugger): it got nothing because it asked for
+    nothing, and the window starts again once it runs."""
 
     def __init__(self, period: float) -> None:
         self.period = period
         self._since: tuple[float, float, object] | None = None  # (wall s, CPU s, job)
 
-    def share(self, now: float, cpu: float | None, job: object | None) -> float | None:
-        """Fed a sample (wall s, CPU s, the job in flight or None); the share since the last
-        sample of the same job at least `period` ago, else None."""
+    def share(self, now: float, cpu: float | None, job: object | None,
+              stopped: bool = False) -> float | None:
+        """Fed a sample (wall s, CPU s, the job in flight or None, whether the process is
+        stopped); the share since the last sample of the same job at least `period` ago, with
+        no stopped sample between, else None."""
         since = self._since
-        if job is None or cpu is None:
+        if job is None or cpu is None or stopped:
             self._since = None
         elif since is None or since[2] is not job:
             self._since = (now, cpu, job)
@@ -265,10 +302,22 @@ class CpuShare:
             return (cpu - since[1]) / (now - since[0])
         return None
 
-    def starved(self, now: float, cpu: float | None, job: object | None) -> float | None:
+    def starved(self, now: float, cpu: float | None, job: object | None,
+                stopped: bool = False) -> float | None:
         """`share`, when it is under `STARVED_SHARE` (a planner starved); else None."""
-        share = self.share(now, cpu, job)
+        share = self.share(now, cpu, job, stopped)
         return share if share is not None and share < STARVED_SHARE else None
+
+
+def process_sample(pid: int) -> tuple[float | None, bool]:
+    """(CPU s a process has used, all its threads; whether it is stopped): (None, False) if
+    /proc cannot tell."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        cpu = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime
+    except (OSError, IndexError, ValueError):
+        return None, False
+    return cpu, fields[0] in ("T", "t")  # stopped by a signal, or by a tracer
 
 
 class PlanningProcess:
@@ -280,50 +329,68 @@ class PlanningProcess:
     `on_result` is called on the receiver thread. The child runs `threads` torch threads and
     exits when the node's end of the socket closes, even if the node was killed.
 
+    The receiver thread supervises the child: one that dies (killed, out of memory, a crash in
+    torch) is started again after 0.5, 1, 2, 4, 8 s, and given the weights, the planner and
+    seed in use and the job waiting, if any. The job in flight dies with it: its observations
+    are old by then, and it may be what killed the child; the controller, finding the worker
+    idle, asks again from its newest observations. After `restart_limit` restarts in a row with
+    no plan between them it gives up and says so in `error`. Callers never wait for any of
+    this: what they send meanwhile is kept for the next child. `failed` is True from a fault
+    until the next plan arrives; `restarts` counts the children started again.
+
     The child plans at idle priority (SCHED_IDLE) where the node may take it back: any other
     task that wakes, the middleware's threads and the robot's driver included, runs at once,
     where at a nice value it would wait out the planner's time slice. A machine kept busy by
     other work would starve it there; the receiver thread watches, and a child that gets less
-    than `STARVED_SHARE` of a core while planning goes to normal scheduling at `niceness` for
-    good. Elsewhere it plans at `niceness` throughout. `priority` says how the child is
-    scheduled as the child itself reports it ("starting" until its report comes).
+    than `STARVED_SHARE` of a core while planning (time it spent stopped not counted) goes to
+    normal scheduling at `niceness`, and back to idle after `IDLE_RETRY_S`, a wait that doubles
+    each time (a machine still busy sends it back at once). Elsewhere it plans at `niceness`
+    throughout. `priority` says how the child is scheduled as the child itself reports it
+    ("starting" until its report comes).
     """
 
     def __init__(self, planner: ConstrainedPlanner,
                  on_result: Callable[[PlanResult], None], noise_seed: int = 0,
                  threads: int = 1, niceness: int = 5, idle: bool = True,
-                 name: str = "planning_process") -> None:
-        self._on_result, self._niceness = on_result, niceness
-        idle = idle and may_leave_idle(niceness)
+                 name: str = "planning_process", restart_limit: int = RESTART_LIMIT,
+                 restart_delay: float = RESTART_DELAY_S,
+                 restart_delay_max: float = RESTART_DELAY_MAX_S) -> None:
+        self._on_result, self._niceness, self._threads = on_result, niceness, threads
+        self._idle = idle and may_leave_idle(niceness)
+        self._restart_limit, self._restart_delay = restart_limit, restart_delay
+        self._restart_delay_max = restart_delay_max
         self.priority = "starting"  # how the child is scheduled, as it reports it
         self._starvation = CpuShare(WATCH_PERIOD_S)
-        # A plain interpreter on a socket pair, not multiprocessing's spawn: that one would run
-        # the caller's main script again in the child; fork is unsafe beside DDS threads.
-        ours, theirs = socket.socketpair()
+        self._left_idle_at: float | None = None  # monotonic s, when starving sent it off idle
+        self._idle_retry = IDLE_RETRY_S
+        # What every child is given before its first job: the weights pickled once (a restart
+        # then costs the node no interpreter time), the planner and the seed in use.
+        self._weights = _message("policy", planner.policy)
+        self._planner_args = (planner.config, planner.robot)
+        self._seed = noise_seed
         package_root = str(Path(__file__).resolve().parents[2])
-        environment = {**os.environ, "OMP_NUM_THREADS": str(threads),
-                       "PYTHONPATH": os.pathsep.join(
-                           filter(None, [package_root, os.environ.get("PYTHONPATH")]))}
-        code = (f"from {__name__} import serve; "
-                f"serve({theirs.fileno()}, {threads}, {niceness}, {idle})")
-        self._process = subprocess.Popen([sys.executable, "-c", code], env=environment,
-                                         pass_fds=[theirs.fileno()], stdin=subprocess.DEVNULL)
-        theirs.close()
-        self._connection = Connection(ours.detach())
-        self._lock = threading.Lock()  # in flight, pending and the sending end
+        self._environment = {**os.environ, "OMP_NUM_THREADS": str(threads),
+                             "PYTHONPATH": os.pathsep.join(
+                                 filter(None, [package_root, os.environ.get("PYTHONPATH")]))}
+        self._lock = threading.Lock()  # the state below and the sending end
+        self._connection: Connection | None = None  # to a child that has what it needs
         self._in_flight: PlanJob | None = None
         self._pending: PlanJob | None = None
         self._sent_zones: RestrictedArea | None = None
+        self._gave_up = False
+        self._stopping = False
+        self._stopped = threading.Event()  # wakes the supervisor out of a restart's wait
+        self._in_a_row = 0  # restarts since the last plan arrived
         self.error: BaseException | None = None  # the last fault
         self.errors = 0  # faults so far
+        self.failed = False  # a fault since the last plan arrived
+        self.restarts = 0  # children started again after one died
         self.cancelled = 0  # plans stopped in flight
-        self._stopping = False
-        with self._lock:  # the weights once (they wait for the child to start reading)
-            _send(self._connection, "policy", planner.policy)
-        self.use(planner)
-        self.reseed(noise_seed)
-        self._receiver = threading.Thread(target=self._receive, name=f"{name}_receiver",
-                                          daemon=True)
+        self._watch_failed = False
+        self._process, connection = self._spawn()
+        ready = self._handshake(connection)  # the first child ready before the first job
+        self._receiver = threading.Thread(target=self._supervise, args=(connection, ready),
+                                          name=f"{name}_receiver", daemon=True)
         self._receiver.start()
 
     @property
@@ -338,92 +405,217 @@ class PlanningProcess:
 
     def submit(self, job: PlanJob, cancel: bool = False) -> None:
         with self._lock:
-            if self.error is not None and not self._process_alive():
+            if self._gave_up:
                 return  # nothing plans any more: the node reports `error`
-            if self._in_flight is None:
+            if self._connection is not None and self._in_flight is None:
                 self._start(job)
                 return
-            self._pending = job
-            if cancel:  # under the lock: it reaches the child before the pending job can
-                self._tell_locked("cancel", None)
-
-    def _process_alive(self) -> bool:
-        return self._process.poll() is None
+            self._pending = job  # for the child to come, if none has what it needs
+            if cancel and self._in_flight is not None:  # under the lock: it reaches the child
+                self._tell_locked("cancel", None)  # before the pending job can
 
     def use(self, planner: ConstrainedPlanner) -> None:
         """Plan with another configuration (of the same policy) from the next job on; a few
         hundred bytes, so the caller never waits for the child to finish a plan."""
-        self._tell("planner", (planner.config, planner.robot))
+        with self._lock:
+            self._planner_args = (planner.config, planner.robot)
+            self._tell_locked("planner", self._planner_args)
 
     def reseed(self, noise_seed: int) -> None:
         """A new episode: the same noise as a fresh node from the next job on (like any
-        message, it stops the plan in flight; a job waiting is the last episode's too)."""
+        message, it stops the plan in flight; a job waiting is the last episode's too). A child
+        started again mid-episode starts from this seed again."""
         with self._lock:
-            self._pending = None
+            self._seed, self._pending = noise_seed, None
             self._tell_locked("seed", noise_seed)
 
-    def _tell(self, kind: str, payload: object) -> None:
-        with self._lock:
-            self._tell_locked(kind, payload)
-
     def _tell_locked(self, kind: str, payload: object) -> None:
+        """Send to the child if one is ready; else the next child gets it (the caller holds
+        the lock)."""
+        if self._connection is None:
+            return
         try:
             _send(self._connection, kind, payload)
-        except OSError as error:  # the child is gone: said once, by the receiver
-            self._fail(f"planning process gone: {error}")
+        except OSError as error:
+            self._lost_locked(f"cannot send {kind!r} to the planning process: {error}")
+
+    def _lost_locked(self, message: str) -> None:
+        """A send failed: the child is gone, or the stream is cut mid-message. It is killed to
+        be sure, and the supervisor starts another; until then, what is sent waits for it."""
+        self._connection = None
+        self.failed = True
+        LOGGER.warning("planning process: %s", message)
+        with contextlib.suppress(OSError):
+            self._process.kill()
 
     def shutdown(self, timeout: float = 5.0) -> None:
-        self._stopping = True
-        with self._lock, contextlib.suppress(OSError, ValueError):
-            _send(self._connection, "stop", None)
+        with self._lock:
+            self._stopping = True
+            process, connection, self._connection = self._process, self._connection, None
+            if connection is not None:
+                with contextlib.suppress(OSError, ValueError):
+                    _send(connection, "stop", None)
+        self._stopped.set()
         try:
-            self._process.wait(timeout)
+            process.wait(timeout)
         except subprocess.TimeoutExpired:
-            self._process.kill()
-            self._process.wait(timeout)
-        self._connection.close()
+            process.kill()
+            process.wait(timeout)
         self._receiver.join(timeout)
 
     def _start(self, job: PlanJob) -> None:
-        """Send a job, its zones only when they are not the ones sent last (the child keeps
-        those, and what it derived from them); the caller holds the lock. A job that cannot be
-        sent is reported in `error` and dropped (the next one is asked for as usual)."""
+        """Send a job to the ready child, its zones only when they are not the ones sent last
+        (the child keeps those, and what it derived from them); the caller holds the lock. A
+        job that cannot be pickled is reported in `error` and dropped (the next one is asked
+        for as usual); one that cannot be sent dies with the child."""
         same = job.zones is not None and job.zones is self._sent_zones
-        self._in_flight = job  # already: a send that waits for a starved child counts too
         try:
-            _send(self._connection, "job", (replace(job, zones=None) if same else job, same))
-        except (OSError, pickle.PicklingError, TypeError, AttributeError) as error:
-            self._in_flight = None
+            message = _message("job", (replace(job, zones=None) if same else job, same))
+        except (pickle.PicklingError, TypeError, AttributeError) as error:
             self._fail(f"cannot send a plan to the planning process: {type(error).__name__}: "
                        f"{error}")
+            return
+        self._in_flight = job  # already: a send that waits for a starved child counts too
+        try:
+            self._connection.send_bytes(message)
+        except OSError as error:
+            self._lost_locked(f"cannot send a plan to the planning process: {error}")
             return
         self._sent_zones = job.zones
 
     def _fail(self, message: str) -> None:
-        self.error, self.errors = RuntimeError(message), self.errors + 1
+        self.error, self.errors, self.failed = RuntimeError(message), self.errors + 1, True
         LOGGER.error("planning process: %s", message)
 
-    def _receive(self) -> None:
+    # -- the receiver thread: supervision, replies and the priority watch -------------------
+
+    def _spawn(self) -> tuple[subprocess.Popen, Connection]:
+        """A new child on a socket pair: a plain interpreter, not multiprocessing's spawn (that
+        one would run the caller's main script again in the child); fork is unsafe beside DDS
+        threads."""
+        ours, theirs = socket.socketpair()
+        try:
+            process = subprocess.Popen(
+                child_command(theirs.fileno(), self._threads, self._niceness, self._idle),
+                env=self._environment, pass_fds=[theirs.fileno()], stdin=subprocess.DEVNULL)
+        except BaseException:
+            ours.close()
+            raise
+        finally:
+            theirs.close()
+        return process, Connection(ours.detach())
+
+    def _supervise(self, connection: Connection, ready: bool) -> None:
+        """Serve the child until it dies, then start another after a growing wait, until
+        `restart_limit` restarts in a row bring no plan (a plan that arrives resets the
+        count). Runs on the receiver thread: the callers of `submit` never wait for it."""
+        process: subprocess.Popen | None = self._process
+        death = ""
+        while True:
+            if process is not None:
+                if ready:
+                    self._receive(connection)
+                death = self._bury(process, connection)
+                if death is None:
+                    return  # shut down
+            if self._in_a_row >= self._restart_limit:
+                with self._lock:
+                    self._gave_up, self._pending = True, None
+                self._fail(f"{death}; {self._in_a_row} restarts in a row brought no plan: gave "
+                           f"up, nothing plans any more")
+                return
+            delay = min(self._restart_delay * 2 ** self._in_a_row, self._restart_delay_max)
+            self._in_a_row += 1
+            self._fail(f"{death}; restarting it in {delay:g} s ({self._in_a_row} of "
+                       f"{self._restart_limit} in a row)")
+            if self._stopped.wait(delay):
+                return
+            try:
+                process, connection = self._spawn()
+            except OSError as error:  # out of memory or of processes: counted as a death
+                process, death = None, f"cannot start a planning process: {error}"
+                continue
+            with self._lock:
+                stopping = self._stopping
+                if not stopping:
+                    self._process = process
+                    self.restarts += 1
+                    self.priority = "starting"
+                    self._starvation, self._left_idle_at = CpuShare(WATCH_PERIOD_S), None
+            if stopping:  # shut down meanwhile: the child reads the end of its socket and exits
+                connection.close()
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    process.wait(5.0)
+                return
+            ready = self._handshake(connection)
+
+    def _handshake(self, connection: Connection) -> bool:
+        """Give a new child the weights, without the lock (they take a while to read: the
+        callers do not wait for it); once it has read them, the planner and seed in use and the
+        job waiting, which then go at once. From then on callers send to it. False if it died
+        or the worker was shut down first."""
+        try:
+            connection.send_bytes(self._weights)
+            while _unread(connection):  # whatever goes under the lock must not wait for it
+                if self._stopped.wait(0.005):
+                    return False
+            with self._lock:
+                if self._stopping:
+                    return False
+                _send(connection, "planner", self._planner_args)
+                _send(connection, "seed", self._seed)
+                self._connection, self._sent_zones = connection, None
+                if self._pending is not None:
+                    job, self._pending = self._pending, None
+                    self._start(job)
+        except OSError:
+            return False
+        return True
+
+    def _bury(self, process: subprocess.Popen, connection: Connection | None) -> str | None:
+        """After a child's end: forget its connection and the job it was planning (the
+        controller asks again when it finds the worker idle). What it died of, or None when it
+        was told to stop."""
+        with self._lock:
+            if self._connection is connection:
+                self._connection = None
+            self._in_flight = None
+            stopping = self._stopping
+        if connection is not None:
+            connection.close()
+        try:
+            code = process.wait(5.0)
+        except subprocess.TimeoutExpired:  # its socket closed, yet it lives: not to be trusted
+            process.kill()
+            code = process.wait()
+        return None if stopping else f"the planning process exited (code {code})"
+
+    def _receive(self, connection: Connection) -> None:
+        """Hand over the child's replies until its end of the socket closes."""
         while True:
             try:
-                ready = self._connection.poll(WATCH_PERIOD_S)
-                self._watch()
+                ready = connection.poll(WATCH_PERIOD_S)
+                self._watch_safely()
                 if not ready:
                     continue
-                kind, data = pickle.loads(self._connection.recv_bytes())
-                payload, seconds = pickle.loads(data)
+                message = connection.recv_bytes()
             except (EOFError, OSError):
-                if not self._stopping:  # nothing more is planned: the node reports `error`
-                    with self._lock:
-                        self._in_flight = self._pending = None
-                    self._fail(f"the planning process exited (code {self._process.wait()})")
+                return
+            try:
+                kind, data = pickle.loads(message)
+                payload, seconds = pickle.loads(data)
+            except Exception as error:  # a reply that cannot be read: the child is replaced
+                LOGGER.error("planning process: unreadable reply (%s): restarting it", error)
+                with contextlib.suppress(OSError):
+                    self._process.kill()
                 return
             if kind == "scheduling":
                 self.priority = payload
                 continue
             if kind == "chunk":
+                self._in_a_row, self.failed = 0, False  # before the owner hears of it
                 if not self._stopping:
-                    self._on_result(PlanResult(self._in_flight, np.asarray(payload), seconds))
+                    self._offer(PlanResult(self._in_flight, np.asarray(payload), seconds))
             elif kind == "cancelled":
                 self.cancelled += 1
             else:
@@ -432,26 +624,42 @@ class PlanningProcess:
                     continue  # a configuration or seed that failed: no job ended
             with self._lock:  # not busy until the result is handed over
                 self._in_flight = None
-                if self._pending is not None and not self._stopping:
-                    self._start(self._pending)
-                self._pending = None
+                if (self._pending is not None and self._connection is not None
+                        and not self._stopping):
+                    job, self._pending = self._pending, None
+                    self._start(job)
+
+    def _offer(self, result: PlanResult) -> None:
+        try:
+            self._on_result(result)
+        except Exception as error:  # the owner's fault: the receiver keeps serving
+            LOGGER.exception("planning process: the result's handler failed")
+            self.error, self.errors, self.failed = error, self.errors + 1, True
+
+    def _watch_safely(self) -> None:
+        """`_watch`, whose fault must not end the receiver thread (nor supervision with it)."""
+        try:
+            self._watch()
+        except Exception:
+            if not self._watch_failed:  # said once: it would fail every period
+                LOGGER.exception("planning process: watching its priority failed")
+            self._watch_failed = True
 
     def _watch(self) -> None:
-        """At idle priority: a child starved by other work goes to normal scheduling."""
-        if self.priority != "idle":
-            return
-        job = self._in_flight  # without the lock: a send in progress holds it
-        share = self._starvation.starved(time.monotonic(), self._child_cpu_seconds(), job)
-        if share is not None:
-            self._leave_idle(share)
-
-    def _child_cpu_seconds(self) -> float | None:
-        """CPU time the child has used (all its threads), or None if it cannot be read."""
-        try:
-            fields = Path(f"/proc/{self.pid}/stat").read_text().rsplit(")", 1)[1].split()
-        except (OSError, IndexError):
-            return None
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime
+        """At idle priority: a child starved by other work goes to normal scheduling. Off it
+        after starving: back to idle once the wait is over."""
+        now = time.monotonic()
+        if self.priority == "idle":
+            job = self._in_flight  # without the lock: a send in progress holds it
+            cpu, stopped = process_sample(self.pid)
+            if stopped:  # it asked for nothing: no window spans the stop
+                self._starvation.share(now, cpu, job, stopped=True)
+                return
+            share = self._starvation.starved(now, cpu, job)
+            if share is not None:
+                self._leave_idle(share)
+        elif self._left_idle_at is not None and now - self._left_idle_at >= self._idle_retry:
+            self._return_to_idle()
 
     def _leave_idle(self, share: float) -> None:
         threads: list[str] = []
@@ -469,6 +677,23 @@ class PlanningProcess:
                 return
         with contextlib.suppress(OSError):
             self.priority = scheduling(self.pid)
+        self._left_idle_at = time.monotonic()
         LOGGER.warning("planning process got %.0f%% of a core at idle priority (the machine "
-                       "is busy): normal scheduling (%s) from now on", 100 * share,
-                       self.priority)
+                       "is busy): normal scheduling (%s) for %g s", 100 * share,
+                       self.priority, self._idle_retry)
+
+    def _return_to_idle(self) -> None:
+        """The machine may be quiet again: idle priority once more (a task may always lower
+        its own). Starved again, the child leaves it at once, and waits twice as long."""
+        self._left_idle_at = None
+        self._idle_retry = min(2 * self._idle_retry, IDLE_RETRY_MAX_S)
+        threads: list[str] = []
+        with contextlib.suppress(OSError):
+            threads = os.listdir(f"/proc/{self.pid}/task")
+        for thread in threads:
+            with contextlib.suppress(OSError):  # a thread that ended meanwhile
+                os.sched_setscheduler(int(thread), os.SCHED_IDLE, os.sched_param(0))
+        self._starvation = CpuShare(WATCH_PERIOD_S)  # judged afresh, at idle
+        with contextlib.suppress(OSError):
+            self.priority = scheduling(self.pid)
+        LOGGER.info("planning process: back to idle priority (%s)", self.priority)

@@ -533,6 +533,8 @@ class PolicyNode(Node):
                           executor_realtime=self.executor_realtime,
                           planning_priority=self.controller.worker.priority,
                           planning_errors=self.controller.worker.errors,
+                          planning_failed=self.controller.worker.failed,
+                          planning_restarts=self.controller.worker.restarts,
                           planning_error=one_line(self.controller.worker.error or ""))
         values["zone_ids"] = ",".join(str(i) for i in self.zones.ids)
         level, message = self._health(values)
@@ -554,9 +556,12 @@ class PolicyNode(Node):
                 f"space, or a non-finite action): the pusher held")
         if since["violations"]:
             return DiagnosticStatus.ERROR, f"{since['violations']} setpoint(s) inside a zone"
-        if since["planning_errors"]:
-            return DiagnosticStatus.ERROR, (f"planning failed {since['planning_errors']} "
-                                            f"time(s): {values['planning_error']}")
+        if since["planning_errors"] or values.get("planning_failed"):
+            # ERROR until a plan arrives again: a planner that died stays news until it plans
+            return DiagnosticStatus.ERROR, (
+                f"planning failed ({values['planning_errors']} fault(s), "
+                f"{values['planning_restarts']} restart(s), no plan since): "
+                f"{values['planning_error']}")
         problems = []
         if since["zones_refused"]:
             problems.append(f"{since['zones_refused']} zone message(s) refused")

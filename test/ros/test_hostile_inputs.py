@@ -10,12 +10,15 @@ are noise-like, so a zone dropped on the latest one is a real test of the reacti
 
 from __future__ import annotations
 
+import os
+import signal
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 import shapely
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import Point32, PointStamped, PolygonInstanceStamped, PolygonStamped
 from nav_msgs.msg import OccupancyGrid
 from nav_msgs.msg import Path as PathMsg
@@ -166,3 +169,34 @@ def test_a_pusher_no_robot_can_be_is_refused_and_never_held_at(link: RealtimeLin
     assert all(np.array_equal(p, PUSHER) for p in sent), sent
     status = link.latest_status(lambda v: int(v.get("observations_refused", 0)) >= 6)
     assert int(status["unsound_setpoints"]) >= 1  # the hold, reported as ERROR
+
+
+def planning_child(node_pid: int) -> int:
+    """The pid of the policy node's planning process (its one child)."""
+    children = [int(c) for task in Path(f"/proc/{node_pid}/task").iterdir()
+                for c in (task / "children").read_text().split()]
+    assert len(children) == 1, children
+    return children[0]
+
+
+def test_a_killed_planning_process_is_restarted_and_error_stays_until_it_plans(
+        link: RealtimeLink) -> None:
+    """After SIGKILL of the planning child the node said ERROR once, then "running", then WARN
+    for good, and never planned again. Now: ERROR in every status until a plan comes from a
+    restarted child, then the restart counted and the status no longer ERROR."""
+    link.planning()
+    node = link.processes.processes["policy_node"].pid
+    child = planning_child(node)
+    os.kill(child, signal.SIGKILL)
+    failed = link.latest_status(lambda v: v.get("planning_failed") == "True")
+    assert link.statuses[-1].status[0].level == DiagnosticStatus.ERROR, failed
+    plans = len(link.plans)
+    while len(link.plans) == plans:  # observations until a plan comes from the new child
+        link.observe()
+        assert link.ros.spin_until(lambda: len(link.plans) > plans, 0.5) or link.step < 200, \
+            link.processes.logs()
+    levels_before = [s.status[0].level for s in link.statuses
+                     if status_values(s).get("planning_failed") == "True"]
+    assert levels_before and set(levels_before) == {DiagnosticStatus.ERROR}
+    status = link.latest_status(lambda v: v.get("planning_failed") == "False")
+    assert status["planning_restarts"] == "1" and planning_child(node) != child

@@ -9,8 +9,21 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 
 import yaml
+from yaml.composer import ComposerError
 
+from constrained_diffusion_ros.policy.config import read_text_file
 from constrained_diffusion_ros.policy.schedulers import SPACINGS
+
+# Upper bounds that keep a typo from planning for minutes or allocating gigabytes, far above
+# what anyone runs: DDPM's own schedule has 1000 steps (the shipped ones 100 and 10), and each
+# candidate or from-scratch chunk is one more row of every network call (shipped: 8).
+MAX_DENOISING_STEPS = 1000
+MAX_CHUNKS = 1024  # candidates and from_scratch
+# YAML: the shipped files are a few kB and their aliases add 119 nodes; these bounds are
+# generous by far, yet a 623-byte alias bomb (nine levels of nine aliases: 387 million nodes,
+# 3.4 GB in 9 s) is refused as soon as its aliases pass the budget.
+MAX_YAML_BYTES = 4 << 20
+ALIAS_NODE_BUDGET = 10_000  # nodes that aliases may add to a document, all aliases together
 
 
 def _number(value: object) -> bool:
@@ -62,8 +75,15 @@ class ConstraintConfig:
         if self.denoising_steps is not None and self.denoising_steps < 1:
             raise ValueError(f"configuration {self.name!r}: denoising_steps must be at least "
                              f"1 (or left out: the training schedule's)")
+        if self.denoising_steps is not None and self.denoising_steps > MAX_DENOISING_STEPS:
+            raise ValueError(f"configuration {self.name!r}: denoising_steps must be at most "
+                             f"{MAX_DENOISING_STEPS}, got {self.denoising_steps}")
         if self.candidates < 1:
             raise ValueError(f"configuration {self.name!r}: candidates must be at least 1")
+        for name in ("candidates", "from_scratch"):
+            if getattr(self, name) > MAX_CHUNKS:
+                raise ValueError(f"configuration {self.name!r}: {name} must be at most "
+                                 f"{MAX_CHUNKS}, got {getattr(self, name)}")
         if self.from_scratch and self.candidates > 1:
             raise ValueError(f"configuration {self.name!r}: from_scratch draws its own "
                              f"candidates")
@@ -94,20 +114,75 @@ class ConstraintConfig:
                 (self.from_scratch or self.candidates > 1) and self.name)
 
 
-def read_yaml(path: str | Path) -> object:
-    """A YAML file, safe-loaded (no tags that run code); any fault is one ValueError line
-    naming the file and, for a syntax error, where it is."""
-    path = Path(path)
+class BoundedSafeLoader(yaml.SafeLoader):
+    """PyYAML's SafeLoader (no tags that run code) that also refuses an alias to a node still
+    being read (a cycle) and aliases that together add more than ALIAS_NODE_BUDGET nodes: an
+    alias costs nothing to read but its copies are all walked by whoever prints or checks the
+    document (a billion-laughs file). Counted while composing, before anything is built."""
+
+    def __init__(self, stream: str) -> None:
+        super().__init__(stream)
+        self._sizes: dict[int, int] = {}  # id(node) -> its node count with aliases expanded
+        self._open: set[str] = set()  # anchors of the collections being read
+        self._added = 0  # nodes the aliases read so far add
+
+    def compose_node(self, parent: yaml.Node | None, index: object) -> yaml.Node:
+        event = self.peek_event()
+        anchor = getattr(event, "anchor", None)
+        if isinstance(event, yaml.AliasEvent):
+            if anchor in self._open:
+                raise ComposerError(None, None, f"alias *{anchor} refers to the node it is in",
+                                    event.start_mark)
+            node = super().compose_node(parent, index)
+            self._added += self._size(node)
+            if self._added > ALIAS_NODE_BUDGET:
+                raise ComposerError(
+                    None, None, f"aliases expand to more than {ALIAS_NODE_BUDGET} nodes "
+                    f"(an alias bomb?)", event.start_mark)
+            return node
+        if anchor is None or isinstance(event, yaml.ScalarEvent):
+            return super().compose_node(parent, index)
+        self._open.add(anchor)
+        try:
+            return super().compose_node(parent, index)
+        finally:
+            self._open.discard(anchor)
+
+    def _size(self, node: yaml.Node) -> int:
+        """Nodes in `node` with every alias expanded, each node counted once per path (so
+        shared anchors are summed, not walked: nine levels of nine cost 81 look-ups)."""
+        known = self._sizes.get(id(node))
+        if known is None:
+            if isinstance(node, yaml.SequenceNode):
+                known = 1 + sum(self._size(child) for child in node.value)
+            elif isinstance(node, yaml.MappingNode):
+                known = 1 + sum(self._size(k) + self._size(v) for k, v in node.value)
+            else:
+                known = 1
+            self._sizes[id(node)] = known
+        return known
+
+
+def safe_yaml(text: str, where: str) -> object:
+    """`text` (from `where`: a file, a parameter) as YAML, safely (no tags that run code, no
+    alias bombs, see BoundedSafeLoader); any fault is one ValueError line naming `where` and,
+    for a syntax error, the line. The one YAML reader of the package's own files and text."""
     try:
-        return yaml.safe_load(path.read_text())
-    except OSError as error:
-        raise ValueError(f"cannot read {path}: {error.strerror or error}") from None
+        return yaml.load(text, Loader=BoundedSafeLoader)  # a SafeLoader: no code runs
     except yaml.MarkedYAMLError as error:
         mark = error.problem_mark
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        raise ValueError(f"{path}: not valid YAML{where}: {error.problem}") from None
+        at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise ValueError(f"{where}: not valid YAML{at}: {error.problem}") from None
     except yaml.YAMLError as error:
-        raise ValueError(f"{path}: not valid YAML: {' '.join(str(error).split())}") from None
+        raise ValueError(f"{where}: not valid YAML: {' '.join(str(error).split())}") from None
+    except RecursionError:  # "[[[[..." nested past the parser's stack
+        raise ValueError(f"{where}: not valid YAML: nested too deeply") from None
+
+
+def read_yaml(path: str | Path) -> object:
+    """A YAML file, read as `safe_yaml` reads text; it must be a regular file (a FIFO would
+    block) of at most MAX_YAML_BYTES. Any fault is one ValueError line naming the file."""
+    return safe_yaml(read_text_file(path, MAX_YAML_BYTES), str(path))
 
 
 def load_configurations(path: str | Path) -> dict[str, ConstraintConfig]:

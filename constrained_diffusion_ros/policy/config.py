@@ -7,10 +7,66 @@ checked and printed without building a network.
 from __future__ import annotations
 
 import dataclasses
+import math
+import os
+import stat
 from dataclasses import dataclass, field
+from pathlib import Path
 
 MAX_LEVELS = 6  # U-Net levels at most
 MAX_WIDTH = 4096  # channels per level at most: more is a typo that would allocate gigabytes
+# Upper bounds of the size fields, each far above any PushT policy (the reference: 20
+# observations, 2 actions, horizon 16, kernel 5, 100 training timesteps) yet low enough that a
+# typo or a hostile config.json is refused at once instead of a MemoryError a minute later (a
+# horizon or num_train_timesteps of 10**9 was). Longest horizon of the diffusion-policy papers:
+# 64; DDPM's schedule: 1000 timesteps.
+SIZE_LIMITS = {
+    "obs_dim": 1024, "action_dim": 1024,  # features per observation / action
+    "n_obs_steps": 256, "horizon": 256, "n_action_steps": 256,  # steps of a chunk
+    "kernel_size": 63,  # a kernel wider than the longest horizon sees nothing more
+    "n_groups": MAX_WIDTH, "diffusion_step_embed_dim": MAX_WIDTH,  # channels
+    "num_train_timesteps": 10_000,  # the noise schedule's arrays hold one entry per timestep
+}
+# config.json is a few kB (22 normaliser pairs); anything near this is not a policy's config.
+MAX_CONFIG_BYTES = 1 << 20
+
+
+def regular_file(path: str | os.PathLike) -> Path:
+    """`path`, refused (ValueError, one line naming it) unless it is a regular file: a FIFO
+    blocks its reader until a writer comes, a device never ends. The core's one check before
+    it opens a file given by a user (config.json, weights, YAML)."""
+    path = Path(path)
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as error:
+        raise ValueError(f"cannot read {path}: {error.strerror or error}") from None
+    if not stat.S_ISREG(mode):
+        kind = "a directory" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode) \
+            else "a device or socket"
+        raise ValueError(f"{path} is {kind}, not a regular file")
+    return path
+
+
+def read_text_file(path: str | os.PathLike, max_bytes: int) -> str:
+    """A user's text file, whole: regular (see `regular_file`, checked again on the opened
+    file, so a file swapped for a FIFO in between cannot block) and at most `max_bytes` long
+    (read so far and no further, whatever its size claims: /proc files say 0); any fault is one
+    ValueError line naming the file."""
+    path = regular_file(path)
+    try:
+        descriptor = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # a FIFO opens without a writer
+        with os.fdopen(descriptor, "rb") as file:
+            if not stat.S_ISREG(os.fstat(file.fileno()).st_mode):
+                raise ValueError(f"{path} is not a regular file")
+            data = file.read(max_bytes + 1)
+    except OSError as error:
+        raise ValueError(f"cannot read {path}: {error.strerror or error}") from None
+    if len(data) > max_bytes:
+        raise ValueError(f"{path} is larger than {max_bytes} bytes: not a file of this kind")
+    try:
+        return data.decode()
+    except UnicodeDecodeError as error:
+        raise ValueError(f"{path} is not UTF-8 text (byte {error.start})") from None
 
 
 @dataclass(frozen=True)
@@ -36,12 +92,11 @@ class PolicyConfig:
         """Refuse what would load and then fail at the first observation, or allocate
         gigabytes: every problem named at once."""
         problems = []
-        for name in ("obs_dim", "action_dim", "n_obs_steps", "horizon", "n_action_steps",
-                     "kernel_size", "n_groups", "diffusion_step_embed_dim",
-                     "num_train_timesteps"):
+        for name, limit in SIZE_LIMITS.items():
             value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                problems.append(f"{name} must be a positive integer, got {value!r}")
+            if not isinstance(value, int) or isinstance(value, bool) or not 1 <= value <= limit:
+                problems.append(f"{name} must be a positive integer up to {limit}, got "
+                                f"{value!r}")
         if problems:
             raise ValueError("policy config: " + "; ".join(problems))
         dims = self.down_dims
@@ -62,10 +117,10 @@ class PolicyConfig:
         if self.prediction_type not in ("epsilon", "sample"):
             problems.append(f"prediction_type must be epsilon or sample, got "
                             f"{self.prediction_type!r}")
-        for key, size in (("obs", self.obs_dim), ("action", self.action_dim)):
-            stats = self.normalizer.get(key)
-            if stats is not None and any(len(stats.get(b, ())) != size for b in ("min", "max")):
-                problems.append(f"normalizer {key} needs min and max of {size} values")
+        if not isinstance(self.normalizer, dict):
+            problems.append("normalizer must be a mapping of obs and action statistics")
+        else:
+            problems += normalizer_problems(self.normalizer, self.obs_dim, self.action_dim)
         if problems:
             raise ValueError("policy config: " + "; ".join(problems))
 
@@ -91,3 +146,23 @@ class PolicyConfig:
         if "down_dims" in data:
             data["down_dims"] = tuple(data["down_dims"])
         return cls(**data)
+
+
+def normalizer_problems(normalizer: dict, obs_dim: int, action_dim: int) -> list[str]:
+    """What is wrong with a config's normaliser statistics: a NaN or an infinity maps every
+    observation to NaN, and a policy so loaded ran (and scored) without a word."""
+    problems = []
+    for key, size in (("obs", obs_dim), ("action", action_dim)):
+        stats = normalizer.get(key)
+        if stats is None:
+            continue
+        bounds = [stats.get(b) if isinstance(stats, dict) else None for b in ("min", "max")]
+        if not all(isinstance(b, list | tuple) and len(b) == size for b in bounds):
+            problems.append(f"normalizer {key} needs min and max of {size} values")
+        elif not all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+                     for b in bounds for v in b):
+            problems.append(f"normalizer {key} min and max must hold finite numbers only "
+                            f"(a NaN, an infinity or text found)")
+        elif any(low > high for low, high in zip(*bounds, strict=True)):
+            problems.append(f"normalizer {key} has a min above its max")
+    return problems

@@ -37,6 +37,12 @@ class MinMaxNormalizer:
     @classmethod
     def from_dict(cls, data: dict[str, list[float]]) -> MinMaxNormalizer:
         try:
-            return cls(torch.tensor(data["min"]), torch.tensor(data["max"]))
-        except (KeyError, TypeError) as error:
+            minimum, maximum = torch.tensor(data["min"]), torch.tensor(data["max"])
+        except (KeyError, TypeError, ValueError) as error:
             raise ValueError(f"normaliser stats need 'min' and 'max' lists: {error}") from error
+        # Checked on the lists, not the tensors: a network sized on the meta device has no values.
+        if not all(np.isfinite(np.asarray(data[b], dtype=np.float64)).all()
+                   for b in ("min", "max")):
+            # NaN or inf turns every normalised value into NaN: the policy would run on noise
+            raise ValueError("normaliser stats hold NaN or inf")
+        return cls(minimum, maximum)

@@ -9,7 +9,12 @@ import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_file
 
-from constrained_diffusion_ros.policy.config import PolicyConfig
+from constrained_diffusion_ros.policy.config import (
+    MAX_CONFIG_BYTES,
+    PolicyConfig,
+    read_text_file,
+    regular_file,
+)
 from constrained_diffusion_ros.policy.device import resolve_device
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 
@@ -30,13 +35,18 @@ def save_policy(policy: DiffusionPolicy, directory: str | Path, extra: dict | No
 
 
 def read_config(directory: str | Path) -> PolicyConfig:
+    """The directory's config.json, checked; any fault (no file, a FIFO, /proc/self/mem behind
+    a link, bad JSON, a bad field) is one ValueError line naming the file."""
     path = Path(directory) / CONFIG_FILE
-    if not path.is_file():
+    if not path.exists():
         raise ValueError(f"no {CONFIG_FILE} in {directory}: not a policy directory")
+    text = read_text_file(path, MAX_CONFIG_BYTES)
     try:
-        return PolicyConfig.from_dict(json.loads(path.read_text())["policy"])
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as error:
+        return PolicyConfig.from_dict(json.loads(text)["policy"])
+    except (KeyError, TypeError, ValueError) as error:  # JSONDecodeError is a ValueError
         raise ValueError(f"{path} is not a valid policy config: {error}") from error
+    except RecursionError:  # "[[[[..." nested past the parser's stack
+        raise ValueError(f"{path} is not a valid policy config: nested too deeply") from None
 
 
 def load_policy(directory: str | Path, device: str | torch.device = "cpu") -> DiffusionPolicy:
@@ -45,7 +55,7 @@ def load_policy(directory: str | Path, device: str | torch.device = "cpu") -> Di
     storage (meta device) before anything is allocated."""
     target = resolve_device(device)
     config = read_config(directory)
-    path = Path(directory) / WEIGHTS_FILE
+    path = regular_file(Path(directory) / WEIGHTS_FILE)  # a FIFO would block safe_open
     try:
         with safe_open(str(path), "pt") as weights:
             stored = {name: tuple(weights.get_slice(name).get_shape())

@@ -1,8 +1,9 @@
 """Every node's parameters in one table each: declared with descriptors (description, range,
 read-only), checked at start and at run time with a reason, and printed by `--help`.
 
-A double parameter also takes an integer (`-p zone_lifetime:=2`), as users type them; NaN and
-values out of range are refused with the parameter's name and range.
+A double parameter also takes an integer (`-p zone_lifetime:=2`), as users type them, and holds
+it as a double (2.0: what `ros2 param get` shows and parameter events carry); NaN and values out
+of range are refused with the parameter's name and range.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from rcl_interfaces.msg import (
     SetParametersResult,
 )
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 
 from msg_schemas.contract import NAMESPACE, SERVICES, TOPICS
 
@@ -79,13 +81,32 @@ def declare(node: Node, params: Sequence[Param]) -> dict[str, Value]:
     """Declares `params` on `node` and returns their start values, checked (ValueError with the
     reason otherwise); later changes are checked the same way before they are taken."""
     by_name = {param.name: param for param in params}
+    doubles = {param.name for param in params if isinstance(param.default, float)}
     values = {}
     for param in params:
-        value = node.declare_parameter(param.name, param.default, param.descriptor()).value
+        descriptor = param.descriptor()
+        if param.name not in doubles:
+            value = node.declare_parameter(param.name, param.default, descriptor).value
+        else:  # declared writable, so that an integer given can be set again as a double
+            writable = ParameterDescriptor()
+            writable.dynamic_typing = True
+            value = node.declare_parameter(param.name, param.default, writable).value
         reason = param.reason(value)
         if reason:
             raise ValueError(reason)
-        values[param.name] = float(value) if isinstance(param.default, float) else value
+        if param.name in doubles:
+            if not isinstance(value, float):
+                value = float(value)
+                node.set_parameters([Parameter(param.name, Parameter.Type.DOUBLE, value)])
+            node.set_descriptor(param.name, descriptor)  # read-only, range: from here on
+        values[param.name] = value
+
+    def as_doubles(changes: list[Parameter]) -> list[Parameter]:
+        """An integer set at run time (`ros2 param set ... zone_lifetime 3`) becomes a double,
+        as one given at start does."""
+        return [Parameter(change.name, Parameter.Type.DOUBLE, float(change.value))
+                if change.name in doubles and change.type_ == Parameter.Type.INTEGER
+                else change for change in changes]
 
     def on_set(changes) -> SetParametersResult:
         for change in changes:
@@ -96,6 +117,7 @@ def declare(node: Node, params: Sequence[Param]) -> dict[str, Value]:
                     return SetParametersResult(successful=False, reason=reason)
         return SetParametersResult(successful=True)
 
+    node.add_pre_set_parameters_callback(as_doubles)
     node.add_on_set_parameters_callback(on_set)
     return values
 

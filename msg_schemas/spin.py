@@ -5,11 +5,12 @@ Part of the ROS interface layer so that the simulator node and the policy-side n
 from __future__ import annotations
 
 import gc
+import re
 import sys
 from collections.abc import Callable, Sequence
 
 import rclpy
-from rclpy._rclpy_pybind11 import RCLError
+from rclpy._rclpy_pybind11 import RCLError, RCLInvalidROSArgsError, UnknownROSArgsError
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.logging import get_logger
@@ -17,8 +18,12 @@ from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.subscription import Subscription
 from rclpy.timer import Timer
+from rclpy.utilities import remove_ros_args
 
 from msg_schemas.parameters import Param, usage
+from msg_schemas.text import one_line
+
+BAD_ARGUMENTS = 2  # exit code of a command line rclpy cannot parse, as argparse's
 
 
 def answered_help(args: list[str] | None, name: str, summary: str,
@@ -30,6 +35,24 @@ def answered_help(args: list[str] | None, name: str, summary: str,
         print(usage(name, summary, parameters))
         return True
     return False
+
+
+def ros_arguments_problem(args: list[str] | None) -> str | None:
+    """Why rclpy cannot parse the command line's ROS arguments (`-p mode=realtime` without its
+    colon, an unknown `--flag`), in words, or None. Asked before `rclpy.init`, which raises the
+    same errors after logging a line of its own; rcl's source locations are left out."""
+    try:
+        remove_ros_args(args)
+    except UnknownROSArgsError as error:
+        return f"unknown ROS arguments {error}"
+    except RCLInvalidROSArgsError as error:
+        return rcl_text(error)
+    return None
+
+
+def rcl_text(error: Exception) -> str:
+    """An rcl error's message without the C source locations it appends (", at file.c:49")."""
+    return re.sub(r", at \S+:\d+", "", str(error))
 
 
 def log_matches(node: Node, endpoints: Sequence[Publisher | Subscription],
@@ -59,11 +82,20 @@ def spin_node(factory: Callable[[], Node], name: str, args: list[str] | None = N
               parameters: Sequence[Param] = (), summary: str = "",
               startup_errors: tuple[type[BaseException], ...] = ()) -> int:
     """Runs a node until Ctrl-C or shutdown. `-h`/`--help` (before `--ros-args`) prints its
-    parameters and topics and exits. A bad parameter or file at start-up is logged in one line
-    (exit code 1), never a traceback."""
+    parameters and topics and exits. ROS arguments rclpy cannot parse are one line on stderr
+    (exit code 2, as the commands'); a bad parameter or file at start-up is logged in one line
+    (exit code 1). Never a traceback."""
     if answered_help(args, name, summary, parameters):
         return 0
-    rclpy.init(args=args)
+    problem = ros_arguments_problem(args)
+    if problem is None:
+        try:
+            rclpy.init(args=args)
+        except RCLError as error:  # e.g. ROS_DOMAIN_ID=abc
+            problem = rcl_text(error)
+    if problem is not None:
+        print(f"{name}: error: {one_line(problem)} (see --help)", file=sys.stderr)
+        return BAD_ARGUMENTS
     try:
         node = factory()
     except (ValueError, ParameterException, *startup_errors) as error:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import re
 import sys
 import time
@@ -28,7 +29,7 @@ from constrained_diffusion_ros.evaluation.rollout import RolloutLog
 from constrained_diffusion_ros.evaluation.scenarios import Scenario, load_scenarios
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.planning.config import load_configurations
-from constrained_diffusion_ros.policy.weights import read_config
+from constrained_diffusion_ros.policy.weights import load_policy
 from msg_schemas import NAMESPACE, SERVICES, TOPICS
 from msg_schemas.conversions import point_of, pose2d_of, step_of_stamp, zones_shown
 from sim_bridge import CONTROL_HZ
@@ -41,6 +42,45 @@ POLICY_THREADS = 1
 # resends a reliable message its reader missed after the writer's next heartbeat (every 3 s by
 # Fast DDS's default).
 RECORDING_GRACE_S = 10.0
+# ROS 2's "safe" domain ids on Linux ("The ROS_DOMAIN_ID" in the ROS 2 docs): DDS allows up to
+# 232, but above 101 the ports of a domain's participants run into Linux's ephemeral ports
+# (32768 on), and a trial starts five participants; above 232 DDS has no ports for it at all.
+DOMAIN_IDS = range(0, 102)
+MAX_KEEPOUT_CELL = 512.0  # px: the zone publisher's keepout_resolution range is [0, 512]
+
+
+def domain_id(text: str) -> int:
+    """A ROS domain id the trial's nodes can all use (DOMAIN_IDS)."""
+    value = int(text)
+    if value not in DOMAIN_IDS:
+        raise argparse.ArgumentTypeError(f"{text} is not a ROS domain id in "
+                                         f"{DOMAIN_IDS.start}..{DOMAIN_IDS.stop - 1}")
+    return value
+
+
+def seconds(text: str) -> float:
+    """A finite, positive number of seconds (a NaN would never time out)."""
+    value = float(text)
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"{text} is not a positive, finite number of seconds")
+    return value
+
+
+def cell_size(text: str) -> float:
+    """A keep-out cell width the zone publisher takes: 0 (polygons) up to MAX_KEEPOUT_CELL."""
+    value = float(text)
+    if not 0.0 <= value <= MAX_KEEPOUT_CELL:  # NaN too
+        raise argparse.ArgumentTypeError(f"{text} is not a cell width in [0, "
+                                         f"{MAX_KEEPOUT_CELL:g}] px")
+    return value
+
+
+def scene_seed(text: str) -> int:
+    """A seed the simulator takes (its parameter seed is non-negative)."""
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text} is not a non-negative seed")
+    return value
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -52,7 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--configurations-file",
                         default=str(config_dir() / "configurations.yaml"),
                         help="YAML of constraint configurations the policy node reads")
-    parser.add_argument("--seed", type=int, default=100000, help="PushT scene seed")
+    parser.add_argument("--seed", type=scene_seed, default=100000, help="PushT scene seed")
     parser.add_argument("--steps", type=positive_int, default=200,
                         help="control (action) steps")
     parser.add_argument("--model", default=str(default_model_dir()), help="policy directory")
@@ -61,14 +101,15 @@ def build_parser() -> argparse.ArgumentParser:
                              " must not exist yet")
     parser.add_argument("--scenarios-file", default=str(config_dir() / "scenarios.yaml"),
                         help="YAML of scenarios (zones, keep-out grids or plug-in checks)")
-    parser.add_argument("--keepout-grid", type=float, default=0.0, metavar="PX",
+    parser.add_argument("--keepout-grid", type=cell_size, default=0.0, metavar="PX",
                         help="publish the scenario as a keep-out mask (nav2's convention) with "
                              "cells PX wide instead of as polygon zones; 0: polygons")
-    parser.add_argument("--timeout", type=float, default=600.0,
+    parser.add_argument("--timeout", type=seconds, default=600.0,
                         help="seconds before the trial gives up")
-    parser.add_argument("--domain-id", type=int, default=None,
-                        help="ROS domain of the trial's nodes (default: a random one in 1..100, "
-                             "so no other node is heard; set it to watch the trial live)")
+    parser.add_argument("--domain-id", type=domain_id, default=None,
+                        help="ROS domain of the trial's nodes, 0..101 (default: a random one in "
+                             "1..100, so no other node is heard; set it to watch the trial "
+                             "live)")
     return parser
 
 
@@ -93,7 +134,7 @@ def run_trial(args: argparse.Namespace) -> dict:
     if args.configuration not in configurations:
         raise ValueError(f"unknown configuration {args.configuration!r}; known: "
                          f"{', '.join(configurations)}")
-    read_config(args.model)
+    load_policy(args.model)  # config and weights (truncated, NaN) checked before any process
     output = Path(args.output or f"trials/{args.scenario}_{args.configuration}_{args.seed}")
     if output.exists():
         raise ValueError(f"{output} exists already; choose another --output (trials are never "

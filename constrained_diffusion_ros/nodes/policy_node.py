@@ -28,7 +28,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PointStamped, PolygonInstanceStamped, PolygonStamped
 from nav_msgs.msg import OccupancyGrid
@@ -42,7 +41,7 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
-from constrained_diffusion_ros.planning.config import load_configurations
+from constrained_diffusion_ros.planning.config import load_configurations, safe_yaml
 from constrained_diffusion_ros.planning.executor import ChunkExecutor
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.planning.realtime import (
@@ -175,10 +174,8 @@ def plug_in_area(spec: str, parameters: str) -> RestrictedArea | None:
     """The plug-in check named by the parameters, or None; ValueError with one line."""
     if not spec:
         return None
-    try:
-        keywords = yaml.safe_load(parameters) if parameters else {}
-    except yaml.YAMLError as error:
-        raise ValueError(f"parameter restricted_area_parameters is not YAML: {error}") from None
+    keywords = safe_yaml(parameters, "parameter restricted_area_parameters") \
+        if parameters else {}
     if not isinstance(keywords, dict):
         raise ValueError(f"parameter restricted_area_parameters must be a mapping, got "
                          f"{parameters!r}")

@@ -4,6 +4,7 @@ fault, no traceback; --debug shows the traceback instead."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -60,9 +61,35 @@ def files(tmp_path: Path, make_tiny_policy, dataset_path: Path) -> dict[str, Pat
     (paths["not_a_bag"] / "metadata.yaml").write_text("rosbag2_bagfile_information: [\n")
     paths["existing"] = tmp_path / "existing"
     paths["existing"].mkdir()
+    # Issue 26, findings 7 and 8: sizes past the bounds, an alias bomb (six levels of nine: too
+    # many nodes for the budget, yet cheap enough that the code before the bound printed it),
+    # NaN statistics, FIFOs and /proc/self/mem where files are read.
+    paths["long_horizon"] = shutil.copytree(model, tmp_path / "long_horizon")
+    config = json.loads((paths["long_horizon"] / "config.json").read_text())
+    config["policy"]["horizon"] = 512
+    (paths["long_horizon"] / "config.json").write_text(json.dumps(config))
+    bomb = ["a: &a [x, x, x, x, x, x, x, x, x]"] + [
+        f"{level}: &{level} [{', '.join([f'*{below}'] * 9)}]"
+        for below, level in zip("abcde", "bcdef", strict=True)]
+    config_copy("alias_bomb", "scenarios.yaml", "\n".join([*bomb, "g: {zones: *f}", ""]))
+    paths["nan_stats"] = shutil.copytree(model, tmp_path / "nan_stats")
+    config = json.loads((paths["nan_stats"] / "config.json").read_text())
+    config["policy"]["normalizer"]["obs"]["min"][3] = float("nan")
+    (paths["nan_stats"] / "config.json").write_text(json.dumps(config))
+    for name, file in (("fifo_config", "config.json"), ("fifo_weights", "model.safetensors")):
+        paths[name] = shutil.copytree(model, tmp_path / name)
+        (paths[name] / file).unlink()
+        os.mkfifo(paths[name] / file)
+    config_copy("fifo_yaml", "scenarios.yaml", "")
+    (paths["fifo_yaml"] / "scenarios.yaml").unlink()
+    os.mkfifo(paths["fifo_yaml"] / "scenarios.yaml")
+    paths["proc_mem"] = shutil.copytree(model, tmp_path / "proc_mem")
+    (paths["proc_mem"] / "config.json").unlink()
+    (paths["proc_mem"] / "config.json").symlink_to("/proc/self/mem")
     return paths
 
 
+QUICK = "--episodes 1 --steps 1 --sampler ddim --denoising-steps 2"  # if it ran after all
 CASES = [  # command, arguments ({name}: a path from `files`), words the one line must hold
     ("evaluate", "--config-dir {tmp}/nowhere", "no such directory"),
     ("evaluate", "--config-dir {yaml_syntax}", "line 2"),
@@ -105,6 +132,21 @@ CASES = [  # command, arguments ({name}: a path from `files`), words the one lin
     ("trial", "--model {tmp}/none --output {tmp}/t4", "none"),
     ("recover_bag", "{tmp}/nowhere", "no metadata.yaml"),
     ("recover_bag", "{not_a_bag}", "not rosbag2 metadata"),
+    # Issue 26, finding 7: sizes and YAML aliases are bounded (a MemoryError a minute later).
+    ("benchmark_policy", f"--model {{long_horizon}} {QUICK}", "horizon must be a positive "
+     "integer up to 256"),
+    ("evaluate", "--config-dir {alias_bomb}", "aliases expand to more than"),
+    # Finding 8: every bad input is exit code 2 in one line, before any process or directory.
+    ("trial", "--domain-id 300 --output {tmp}/t5", "not a ROS domain id in 0..101"),
+    ("trial", "--keepout-grid nan --output {tmp}/t6", "--keepout-grid"),
+    ("trial", "--timeout -5 --output {tmp}/t7", "--timeout"),
+    ("trial", "--model {truncated} --output {tmp}/t8", "cannot read weights"),
+    ("benchmark_policy", f"--model {{nan_stats}} {QUICK}", "finite numbers only"),
+    ("benchmark_policy", "--model {fifo_config}", "config.json is a FIFO"),
+    ("benchmark_policy", "--model {fifo_weights}", "model.safetensors is a FIFO"),
+    ("evaluate", "--config-dir {fifo_yaml}", "scenarios.yaml is a FIFO"),
+    ("trial", "--scenarios-file {fifo_yaml}/scenarios.yaml --output {tmp}/t9", "is a FIFO"),
+    ("benchmark_policy", "--model {proc_mem}", "proc_mem/config.json: Input/output error"),
 ]
 
 
@@ -120,12 +162,17 @@ def exit_code(command: str, argv: list[str]) -> int:
                          ids=[f"{c} {a}" for c, a, _ in CASES])
 def test_a_bad_file_or_argument_is_one_line_and_exit_code_2(
         files: dict[str, Path], capsys, command: str, arguments: str, words: str) -> None:
-    assert exit_code(command, [word.format(**files) for word in arguments.split()]) == 2
+    argv = [word.format(**files) for word in arguments.split()]
+    output = Path(argv[argv.index("--output") + 1]) if "--output" in argv else None
+    existed = output is not None and output.exists()
+    assert exit_code(command, argv) == 2
     captured = capsys.readouterr()
     lines = captured.err.strip().splitlines()
     assert len(lines) == 1, captured.err
     assert lines[0].startswith(f"{command}: error: ") and words in lines[0], lines[0]
     assert "Traceback" not in captured.err + captured.out
+    if output is not None and not existed:  # a refused run leaves no directory behind
+        assert not output.exists(), output
 
 
 def test_debug_shows_the_traceback_instead(tmp_path: Path) -> None:

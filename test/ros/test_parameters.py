@@ -9,10 +9,14 @@ import sys
 from pathlib import Path
 
 import pytest
+import rclpy
+from rclpy.context import Context
+from rclpy.node import Node
+from rclpy.parameter import Parameter
 
 from constrained_diffusion_ros.evaluation.launcher import random_domain_id
 from constrained_diffusion_ros.nodes import policy_node, recorder, zone_publisher
-from msg_schemas.parameters import Param, usage
+from msg_schemas.parameters import Param, declare, usage
 from sim_bridge import sim_node
 
 NODES = {"policy_node": policy_node, "sim_node": sim_node, "recorder": recorder,
@@ -84,3 +88,45 @@ def test_a_device_that_is_not_here_stops_the_node_in_one_line(parameter: str, wo
     output = (done.stdout + done.stderr).strip().splitlines()
     assert len(output) == 1 and words in output[0], output
     assert "Traceback" not in done.stderr
+
+
+def test_an_integer_given_for_a_double_is_held_as_a_double() -> None:
+    """README: `zone_lifetime:=2` is taken as 2.0, at start and when set at run time; a read-only
+    double stays read-only and its range stays in its descriptor."""
+    context = Context()
+    rclpy.init(context=context, domain_id=random_domain_id())
+    node = Node("doubles", context=context, parameter_overrides=[
+        Parameter("zone_lifetime", value=2), Parameter("rate_hz", value=20)])
+    try:
+        rate = Param("rate_hz", 10.0, "setpoints per second", read_only=True, low=0.1)
+        assert declare(node, [LIFETIME, rate]) == {"zone_lifetime": 2.0, "rate_hz": 20.0}
+        for name, value in (("zone_lifetime", 2.0), ("rate_hz", 20.0)):
+            held = node.get_parameter(name)
+            assert held.type_ == Parameter.Type.DOUBLE and held.value == value, name
+        assert node.describe_parameter("rate_hz").read_only
+        assert node.describe_parameter("zone_lifetime").floating_point_range[0].from_value == 0
+        assert node.set_parameters([Parameter("zone_lifetime", value=3)])[0].successful
+        held = node.get_parameter("zone_lifetime")
+        assert held.type_ == Parameter.Type.DOUBLE and held.value == 3.0
+        assert not node.set_parameters([Parameter("zone_lifetime", value=-1)])[0].successful
+        assert not node.set_parameters([Parameter("rate_hz", value=5.0)])[0].successful
+    finally:
+        node.destroy_node()
+        rclpy.shutdown(context=context)
+
+
+@pytest.mark.parametrize(("arguments", "words"), [
+    (["-p", "mode=realtime"], "Couldn't parse parameter override rule: '-p mode=realtime'"),
+    (["--bogus"], "unknown ROS arguments ['--bogus']")])
+def test_ros_arguments_rclpy_cannot_parse_are_one_line_and_exit_code_2(
+        arguments: list[str], words: str, tmp_path) -> None:
+    """Issue 26, finding 8: rclpy's traceback before."""
+    done = subprocess.run([sys.executable, "-m", "constrained_diffusion_ros.nodes.policy_node",
+                           "--ros-args", *arguments], capture_output=True, text=True,
+                          timeout=120, cwd=tmp_path,
+                          env={**os.environ, "PYTHONPATH": str(REPO),
+                               "ROS_DOMAIN_ID": str(random_domain_id())})
+    assert done.returncode == 2
+    output = (done.stdout + done.stderr).strip().splitlines()
+    assert len(output) == 1 and output[0].startswith("policy_node: error: "), output
+    assert words in output[0] and "Traceback" not in done.stderr

@@ -96,6 +96,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--zone-size", type=float, default=40.0, help="side of the zone, px")
     parser.add_argument("--flood-hz", type=float, default=1000.0, help="0: no flood")
     parser.add_argument("--flood-seconds", type=float, default=10.0)
+    parser.add_argument("--trial-flood-hz", type=float, default=0.0,
+                        help="zone messages per second from a flooding process of its own "
+                             "during the trials (the reaction measured under a flood); 0: none")
+    parser.add_argument("--trial-flood-vertices", type=int, default=4,
+                        help="vertices of each flooding zone (64, the cap: a fuzz at the caps)")
     parser.add_argument("--no-trial", action="store_true",
                         help="skip running `trial` in the loaded condition")
     parser.add_argument("--log-dir", default=None, help="node logs (default: a temporary one)")
@@ -435,6 +440,48 @@ def flood(client: Client, args: argparse.Namespace) -> None:
     client.call(client.clear, client.Trigger.Request(), "clear zones")
 
 
+FLOODER = """
+import sys, time
+import numpy as np, rclpy
+from geometry_msgs.msg import PolygonInstanceStamped
+from msg_schemas import NAMESPACE, TOPICS, qos_profile
+from msg_schemas.conversions import zone_message
+domain, hz, vertices, ids = int(sys.argv[1]), float(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
+rclpy.init(domain_id=domain)
+node = rclpy.create_node("bench_flooder", namespace=NAMESPACE)
+publisher = node.create_publisher(PolygonInstanceStamped, TOPICS["zones"].name,
+                                  qos_profile(TOPICS["zones"], "publisher"))
+angles = np.linspace(0, 2 * np.pi, vertices, endpoint=False)
+ring = 6.0 * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+rng, sent, start = np.random.default_rng(0), 0, time.monotonic()
+while True:
+    due = int((time.monotonic() - start) * hz) + 1
+    while sent < due:
+        centre = (rng.uniform(20, 490), rng.uniform(496, 506))
+        publisher.publish(zone_message(2000 + sent % ids, ring + centre,
+                                       node.get_clock().now().to_msg()))
+        sent += 1
+    time.sleep(max(0.0, start + sent / hz - time.monotonic()))
+"""
+
+
+@contextlib.contextmanager
+def flooding(domain_id: int, hz: float, vertices: int) -> Iterator[None]:
+    """A process of its own publishing `hz` zone messages a second (FLOOD_IDS ids, regular
+    polygons of `vertices` vertices along the bottom edge) while the block runs."""
+    if hz <= 0:
+        yield
+        return
+    environment = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    process = subprocess.Popen([sys.executable, "-c", FLOODER, str(domain_id), str(hz),
+                                str(vertices), str(FLOOD_IDS)], env=environment)
+    try:
+        yield
+    finally:
+        process.kill()
+        process.wait()
+
+
 def report(name: str, result: Condition, nominal: float) -> None:
     latency = np.array(result.latencies)
     reacted = np.array(result.reacted)
@@ -529,11 +576,16 @@ def run_condition(args: argparse.Namespace, loaded: bool) -> None:
                 result = Condition()
                 before = cpu_times()
                 attempt = 0  # scenes without room for a zone are skipped; the next seed is tried
-                while result.trials < args.trials and attempt < MAX_ATTEMPTS * args.trials:
-                    run_trial(client, attempt, FIRST_SEED + attempt, args, result)
-                    attempt += 1
-                    print(".", end="", flush=True)
+                with flooding(domain_id, args.trial_flood_hz, args.trial_flood_vertices):
+                    while result.trials < args.trials and attempt < MAX_ATTEMPTS * args.trials:
+                        run_trial(client, attempt, FIRST_SEED + attempt, args, result)
+                        attempt += 1
+                        print(".", end="", flush=True)
                 print()
+                if args.trial_flood_hz > 0:
+                    print(f"  (the trials ran beside a flood of {args.trial_flood_hz:g} zone "
+                          f"messages a second, {FLOOD_IDS} ids of {args.trial_flood_vertices} "
+                          f"vertices)")
                 steal, total = cpu_times() - before
                 result.callback_delays = [s.called - s.delivered for s in client.setpoints]
                 report(configuration, result, 1.0 / args.rate_hz)

@@ -35,8 +35,12 @@ def load_evaluated(config_dir: str | Path) -> dict[str, EvaluatedConfiguration]:
     directory = Path(config_dir)
     configs = load_configurations(directory / "configurations.yaml")
     path = directory / "evaluation.yaml"
-    document = read_yaml(path) if path.is_file() else {}
-    document = document or {}
+    # Absent: every configuration under its own name. Present, it must be a regular file:
+    # read_yaml refuses a FIFO, a directory or a dangling link in one line (a FIFO was skipped).
+    present = path.exists() or path.is_symlink()
+    document = (read_yaml(path) if present else None) or {}
+    if not isinstance(document, dict):
+        raise ValueError(f"{path}: expected a mapping of configuration names to labels")
     unknown = sorted(set(document) - set(configs))
     if unknown:
         raise ValueError(f"{path}: no configuration named {unknown} in configurations.yaml")

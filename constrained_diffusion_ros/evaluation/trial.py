@@ -30,6 +30,7 @@ from constrained_diffusion_ros.evaluation.scenarios import Scenario, load_scenar
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.planning.config import load_configurations
 from constrained_diffusion_ros.policy.weights import load_policy
+from constrained_diffusion_ros.zones.grid import MaskCaps
 from msg_schemas import NAMESPACE, SERVICES, TOPICS
 from msg_schemas.conversions import point_of, pose2d_of, step_of_stamp, zones_shown
 from sim_bridge import CONTROL_HZ
@@ -47,6 +48,7 @@ RECORDING_GRACE_S = 10.0
 # (32768 on), and a trial starts five participants; above 232 DDS has no ports for it at all.
 DOMAIN_IDS = range(0, 102)
 MAX_KEEPOUT_CELL = 512.0  # px: the zone publisher's keepout_resolution range is [0, 512]
+MAX_KEEPOUT_CELLS = math.isqrt(MaskCaps.cells)  # a side of the mask, as the zone publisher
 
 
 def domain_id(text: str) -> int:
@@ -67,10 +69,12 @@ def seconds(text: str) -> float:
 
 
 def cell_size(text: str) -> float:
-    """A keep-out cell width the zone publisher takes: 0 (polygons) up to MAX_KEEPOUT_CELL."""
+    """A keep-out cell width the zone publisher takes: 0 (polygons), or from a mask of
+    MAX_KEEPOUT_CELLS a side up to MAX_KEEPOUT_CELL."""
     value = float(text)
-    if not 0.0 <= value <= MAX_KEEPOUT_CELL:  # NaN too
-        raise argparse.ArgumentTypeError(f"{text} is not a cell width in [0, "
+    finest = MAX_KEEPOUT_CELL / MAX_KEEPOUT_CELLS
+    if not (value == 0.0 or finest <= value <= MAX_KEEPOUT_CELL):  # NaN too
+        raise argparse.ArgumentTypeError(f"{text} is not 0 or a cell width in [{finest:g}, "
                                          f"{MAX_KEEPOUT_CELL:g}] px")
     return value
 

@@ -17,6 +17,7 @@ Examples:
 
 from __future__ import annotations
 
+import math
 import sys
 
 import numpy as np
@@ -29,11 +30,17 @@ from rclpy.node import Node
 from constrained_diffusion_ros.evaluation.scenarios import Scenario, load_scenarios
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones import rasterize, validate_polygon
+from constrained_diffusion_ros.zones.grid import MaskCaps
 from msg_schemas import NAMESPACE, TOPICS, qos_profile
 from msg_schemas.conversions import occupancy_grid, step_of_stamp, zone_message
 from msg_schemas.parameters import Param, declare
 from msg_schemas.spin import spin_node
 from sim_bridge import CONTROL_HZ
+
+# Cells a side of the keep-out mask at most: what the policy node takes (`MaskCaps.cells`); a
+# resolution of 1e-9 px would ask for 10**23 cells. Over the 512 px workspace: cells at least
+# 0.125 px wide. (Not the Param's low bound: 0 means polygons.)
+MAX_KEEPOUT_CELLS = math.isqrt(MaskCaps.cells)
 
 
 def parse_polygon(text: str, label: str = "parameter polygon") -> np.ndarray:
@@ -63,7 +70,7 @@ PARAMETERS = (
           high=1000.0),
     Param("keepout_resolution", 0.0, "above 0: publish the scenario's zones as a keep-out "
           "mask of cells this many px wide (keepout_mask, nav2's convention) instead of "
-          "polygons", low=0.0, high=512.0),
+          f"polygons; at most {MAX_KEEPOUT_CELLS} cells a side", low=0.0, high=512.0),
     Param("follow_sim_time", True, "moving zones follow the sim's step (from the pusher "
           "stamps); false: wall time"),
 )
@@ -107,6 +114,12 @@ class ZonePublisher(Node):
         self.pub = self.create_publisher(PolygonInstanceStamped, topic.name,
                                          qos_profile(topic, "publisher"))
         self.grid_resolution = float(param("keepout_resolution"))
+        x_min, y_min, x_max, y_max = PUSHT_ROBOT.workspace
+        finest = max(x_max - x_min, y_max - y_min) / MAX_KEEPOUT_CELLS
+        if 0 < self.grid_resolution < finest:
+            raise ValueError(f"parameter keepout_resolution must be 0 (polygons) or at least "
+                             f"{finest:g} px (a mask of at most {MAX_KEEPOUT_CELLS} cells a "
+                             f"side), got {self.grid_resolution!r}")
         if self.grid_resolution > 0:
             if self.scenario is None:
                 raise ValueError("keepout_resolution needs a scenario")

@@ -6,11 +6,14 @@ batch is one gather: no DataLoader, no worker processes.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+
+from constrained_diffusion_ros.policy.config import regular_file
 
 REQUIRED_ARRAYS = ("data/state", "data/action", "data/keypoint", "meta/episode_ends")
 
@@ -36,6 +39,8 @@ def load_demonstrations(path: str | Path) -> Demonstrations:
     path = Path(path)
     if not path.exists():
         raise ValueError(f"dataset not found: {path}")
+    if path.is_dir():
+        check_store_entries(path)
     try:
         root = zarr.open(str(path), mode="r")
         arrays = {name: np.asarray(root[name][:]) for name in REQUIRED_ARRAYS}
@@ -59,6 +64,31 @@ def load_demonstrations(path: str | Path) -> Demonstrations:
     observations = np.concatenate([keypoints.reshape(steps, 18), states[:, :2]], axis=1)
     return Demonstrations(observations.astype(np.float32), actions.astype(np.float32),
                           states.astype(np.float32), ends)
+
+
+def check_store_entries(store: Path) -> None:
+    """Refuses (ValueError, one line naming the entry) a store directory holding anything but
+    regular files and directories, symlinks judged by their targets: zarr would open a FIFO
+    inside it (say data/action/.zarray) and block forever waiting for a writer, and read a
+    device without end. A few hundred entries: one stat each."""
+    visited: set[tuple[int, int]] = set()
+    pending = [store]
+    while pending:
+        directory = pending.pop()
+        try:
+            info = os.stat(directory)
+            if (info.st_dev, info.st_ino) in visited:  # a symlink loop: seen already
+                continue
+            visited.add((info.st_dev, info.st_ino))
+            with os.scandir(directory) as entries:
+                found = list(entries)
+        except OSError as error:
+            raise ValueError(f"cannot read {directory}: {error.strerror or error}") from None
+        for entry in found:
+            if entry.is_dir():  # follows a symlink, as zarr does
+                pending.append(Path(entry.path))
+            else:
+                regular_file(entry.path)  # a FIFO, a device, a dangling link: one line
 
 
 class WindowSampler:

@@ -6,15 +6,19 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from constrained_diffusion_ros.evaluation import bags, benchmark, evaluate, latency, trial
 from constrained_diffusion_ros.paths import config_dir
 from constrained_diffusion_ros.policy.weights import save_policy
 from constrained_diffusion_ros.training import train
+from constrained_diffusion_ros.training.dataset import load_demonstrations
 from msg_schemas.text import LINE_LIMIT, one_line
 
 COMMANDS: dict[str, Callable[[list[str]], int]] = {
@@ -83,6 +87,9 @@ def files(tmp_path: Path, make_tiny_policy, dataset_path: Path) -> dict[str, Pat
     config_copy("fifo_yaml", "scenarios.yaml", "")
     (paths["fifo_yaml"] / "scenarios.yaml").unlink()
     os.mkfifo(paths["fifo_yaml"] / "scenarios.yaml")
+    config_copy("fifo_evaluation", "evaluation.yaml", "")  # was skipped as if absent
+    (paths["fifo_evaluation"] / "evaluation.yaml").unlink()
+    os.mkfifo(paths["fifo_evaluation"] / "evaluation.yaml")
     paths["proc_mem"] = shutil.copytree(model, tmp_path / "proc_mem")
     (paths["proc_mem"] / "config.json").unlink()
     (paths["proc_mem"] / "config.json").symlink_to("/proc/self/mem")
@@ -139,6 +146,7 @@ CASES = [  # command, arguments ({name}: a path from `files`), words the one lin
     # Finding 8: every bad input is exit code 2 in one line, before any process or directory.
     ("trial", "--domain-id 300 --output {tmp}/t5", "not a ROS domain id in 0..101"),
     ("trial", "--keepout-grid nan --output {tmp}/t6", "--keepout-grid"),
+    ("trial", "--keepout-grid 0.01 --output {tmp}/t6b", "--keepout-grid"),
     ("trial", "--timeout -5 --output {tmp}/t7", "--timeout"),
     ("trial", "--model {truncated} --output {tmp}/t8", "cannot read weights"),
     ("benchmark_policy", f"--model {{nan_stats}} {QUICK}", "finite numbers only"),
@@ -147,6 +155,8 @@ CASES = [  # command, arguments ({name}: a path from `files`), words the one lin
     ("evaluate", "--config-dir {fifo_yaml}", "scenarios.yaml is a FIFO"),
     ("trial", "--scenarios-file {fifo_yaml}/scenarios.yaml --output {tmp}/t9", "is a FIFO"),
     ("benchmark_policy", "--model {proc_mem}", "proc_mem/config.json: Input/output error"),
+    ("evaluate", "--config-dir {fifo_evaluation} --model {tmp}/none --output {tmp}/e1",
+     "evaluation.yaml is a FIFO"),
 ]
 
 
@@ -173,6 +183,43 @@ def test_a_bad_file_or_argument_is_one_line_and_exit_code_2(
     assert "Traceback" not in captured.err + captured.out
     if output is not None and not existed:  # a refused run leaves no directory behind
         assert not output.exists(), output
+
+
+def tiny_store(path: Path) -> Path:
+    """A PushT zarr store of two short episodes, laid out as the real one (zarr format 2)."""
+    import zarr
+
+    root = zarr.open_group(str(path), mode="w", zarr_format=2)
+    steps = 40
+    root.create_array("data/state", data=np.arange(steps * 5, dtype=np.float32).reshape(-1, 5))
+    root.create_array("data/action", data=np.ones((steps, 2), np.float32))
+    root.create_array("data/keypoint", data=np.ones((steps, 9, 2), np.float32))
+    root.create_array("meta/episode_ends", data=np.array([20, steps]))
+    return path
+
+
+@pytest.mark.parametrize("link", [False, True], ids=["fifo", "symlink to a fifo"])
+def test_a_fifo_inside_the_dataset_is_one_line_not_a_hang(tmp_path: Path, link: bool) -> None:
+    """zarr opened data/action/.zarray and waited for a writer forever. In a process of its own
+    with a timeout, so that a regression fails instead of hanging the suite."""
+    store = tiny_store(tmp_path / "tiny.zarr")
+    assert load_demonstrations(store).actions.shape == (40, 2)  # whole, it loads
+    entry = store / "data" / "action" / ".zarray"
+    entry.unlink()
+    fifo = tmp_path / "fifo" if link else entry
+    os.mkfifo(fifo)
+    if link:
+        entry.symlink_to(fifo)
+    done = subprocess.run(
+        [sys.executable, "-m", "constrained_diffusion_ros.training.train", "--dataset",
+         str(store), "--output", str(tmp_path / "trained")],
+        capture_output=True, text=True, timeout=60, cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and len(lines) == 1, done.stderr
+    assert lines[0].startswith("train_policy: error: ") and ".zarray is a FIFO" in lines[0], \
+        lines[0]
+    assert not (tmp_path / "trained").exists()
 
 
 def test_debug_shows_the_traceback_instead(tmp_path: Path) -> None:

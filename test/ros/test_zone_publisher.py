@@ -2,12 +2,19 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 from geometry_msgs.msg import PolygonInstanceStamped
-from ros_helpers import stamp_ns, step_ns
+from ros_helpers import random_domain_id, stamp_ns, step_ns
 
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 from msg_schemas import FRAME_ID, TOPICS
+
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_zone_publisher_latched_scenario_and_moving_zone(ros, sim, processes):
@@ -55,3 +62,18 @@ def test_zone_publisher_latched_scenario_and_moving_zone(ros, sim, processes):
 # --------------------------------------------------------------------------- recorder
 
 
+
+
+def test_a_keepout_resolution_too_fine_for_a_mask_is_refused_in_one_line(tmp_path) -> None:
+    """1e-9 px cells: a mask of 10**23 cells (numpy refused it only when the first mask was
+    built, in its own words); at most 4096 cells a side over the 512 px workspace."""
+    done = subprocess.run([sys.executable, "-m", "constrained_diffusion_ros.nodes.zone_publisher",
+                           "--ros-args", "-p", "scenario:=center_0.2", "-p",
+                           "keepout_resolution:=1e-9", "-p", "rate_hz:=0.0"],
+                          capture_output=True, text=True, timeout=120, cwd=tmp_path,
+                          env={**os.environ, "PYTHONPATH": str(REPO),
+                               "ROS_DOMAIN_ID": str(random_domain_id())})
+    assert done.returncode == 1
+    output = (done.stdout + done.stderr).strip().splitlines()
+    assert len(output) == 1 and "keepout_resolution" in output[0], output
+    assert "at least 0.125 px" in output[0] and "Traceback" not in done.stderr

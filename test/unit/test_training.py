@@ -44,6 +44,25 @@ def test_missing_or_malformed_dataset_is_a_clear_error(tmp_path: Path) -> None:
         load_demonstrations(tmp_path / "empty.zarr")
 
 
+def test_store_entries_must_be_files_or_directories_links_judged_by_target(
+        tmp_path: Path) -> None:
+    """Each entry is checked before zarr opens any (a FIFO blocked it: see test_cli): a linked
+    directory is followed, a dangling link is refused by name."""
+    import zarr
+
+    store = tmp_path / "tiny.zarr"
+    root = zarr.open_group(str(store), mode="w", zarr_format=2)
+    for name, shape in (("state", (40, 5)), ("action", (40, 2)), ("keypoint", (40, 9, 2))):
+        root.create_array(f"data/{name}", data=np.ones(shape, np.float32))
+    root.create_array("meta/episode_ends", data=np.array([20, 40]))
+    (store / "data" / "action").rename(tmp_path / "action")
+    (store / "data" / "action").symlink_to(tmp_path / "action")
+    assert load_demonstrations(store).actions.shape == (40, 2)
+    (store / "data" / "notes").symlink_to(tmp_path / "nowhere")  # zarr itself never reads it
+    with pytest.raises(ValueError, match=r"cannot read .*data/notes: No such file"):
+        load_demonstrations(store)
+
+
 def test_tiny_training_lowers_the_loss_and_resumes(dataset_path: Path, tmp_path: Path,
                                                     tiny_dims: tuple[int, ...]) -> None:
     out = tmp_path / "tiny"

@@ -248,6 +248,7 @@ class PolicyNode(Node):
                                                    self._on_zone, profile)
                           for profile in (volatile, latched)]
         self._zone_messages_seen: OrderedDict[tuple, None] = OrderedDict()
+        self._zones_paced_until = 0.0  # realtime: no zone batch before then (`_on_zone`)
         self._subscribe("keepout_mask", OccupancyGrid, self._on_keepout_mask)
         self.keepout_ids: list[str] = []
         self.mask_caps = MaskCaps(pieces=values["max_mask_pieces"],
@@ -578,8 +579,16 @@ class PolicyNode(Node):
 
     def _on_zone(self, msg: PolygonInstanceStamped, info: dict) -> None:
         """Takes every zone message waiting, not just this one: a flood is applied as one
-        batch (the last message per id) and the union is rebuilt once, when next read."""
+        batch (the last message per id) and the union is rebuilt once, when next read.
+
+        Realtime: a batch right after another first waits as long as the last one took, so a
+        flood gets half the executor thread at most. Busy all the time at SCHED_FIFO, the
+        thread was throttled by the kernel (its real-time budget spent) while it held the
+        interpreter lock, and the clock's ticks waited for it; the wait coalesces the messages
+        meanwhile, so nothing is lost and a zone waits no longer than behind a batch."""
         received = time.monotonic()
+        if self.controller is not None and received < self._zones_paced_until:
+            time.sleep(self._zones_paced_until - received)  # frees the CPU and the lock
         messages = [(msg, info)]
         for subscription in self.zone_subs:
             messages += self._take_waiting(subscription, ZONE_BATCH_MAX - len(messages))
@@ -602,6 +611,8 @@ class PolicyNode(Node):
         self._count_zones(outcome, refused)
         if outcome.changed:
             self._zones_changed(received)
+        finished = time.monotonic()
+        self._zones_paced_until = finished + (finished - max(received, self._zones_paced_until))
 
     def _on_keepout_mask(self, msg: OccupancyGrid) -> None:
         """A keep-out mask: its restricted cells become zones ("keepout/<k>", exact polygons)

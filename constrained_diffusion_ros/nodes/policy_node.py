@@ -582,10 +582,11 @@ class PolicyNode(Node):
         batch (the last message per id) and the union is rebuilt once, when next read.
 
         Realtime: a batch right after another first waits as long as the last one took, so a
-        flood gets half the executor thread at most. Busy all the time at SCHED_FIFO, the
-        thread was throttled by the kernel (its real-time budget spent) while it held the
-        interpreter lock, and the clock's ticks waited for it; the wait coalesces the messages
-        meanwhile, so nothing is lost and a zone waits no longer than behind a batch."""
+        flood gets half the executor thread at most. Kept busy at SCHED_FIFO by a flood, the
+        thread can be throttled by the kernel (its real-time budget spent) while it holds the
+        interpreter lock, and the clock's ticks waited up to 85 ms for it (docs/
+        hostile_inputs.md); the wait coalesces the messages meanwhile, so nothing is lost and
+        a zone waits no longer than behind a batch."""
         received = time.monotonic()
         if self.controller is not None and received < self._zones_paced_until:
             time.sleep(self._zones_paced_until - received)  # frees the CPU and the lock

@@ -44,11 +44,12 @@ def markdown_table(cells: Sequence[CellResult], scenarios: Sequence[Scenario],
 def details_table(cells: Sequence[CellResult]) -> str:
     columns = ["scenario", "configuration", "s", "s_ci", "final_score", "success_rate",
                "success_ci", "r", "r_ci", "r_body", "r_body_outside_starts", "path_crossings",
-               "starts_inside", "ms_per_chunk"]
+               "starts_inside", "interventions", "intervention_px", "standstill_steps",
+               "ms_per_chunk"]
     lines = ["| " + " | ".join(columns) + " |", "|" + " --- |" * len(columns)]
     for cell in cells:
         values = cell.to_dict()
-        lines.append("| " + " | ".join(_format(values[c]) for c in columns) + " |")
+        lines.append("| " + " | ".join(_format(values.get(c)) for c in columns) + " |")
     return "\n".join(lines)
 
 

@@ -23,6 +23,7 @@ class RolloutLog:
     states: np.ndarray  # (E, T + 1, 5) before each step and after the last
     coverage: np.ndarray  # (E, T) after each step
     executed_chunk: np.ndarray | None = None  # (E, T) which plan each step executed; -1: held
+    wanted: np.ndarray | None = None  # (E, T, 2) setpoints the plan asked for, before the guard
     planning_s: float = 0.0  # wall time inside the planner
     planned_chunks: int = 0  # episode-chunks planned (a batched call of R rows counts R)
     planner_calls: int = 0
@@ -58,13 +59,14 @@ def rollout(planner: ChunkPlanner, seeds: Sequence[int], n_steps: int = 200,
     sims = PushTBatch(len(seeds))
     states = [sims.reset(list(seeds))]
     executor = ChunkExecutor(planner, zones, generator, delay, handover)
-    commanded, coverages, executed_chunk = [], [], []
+    commanded, coverages, executed_chunk, wanted = [], [], [], []
     with tqdm(total=n_steps, desc=description, unit="step", disable=not progress,
               leave=False) as bar:
         for step in range(n_steps):
             action = executor.act(sims.observations(), step)
             states.append(sims.step(action))
             commanded.append(action)
+            wanted.append(executor.wanted)
             executed_chunk.append(executor.executed_id.copy())
             coverages.append(sims.coverage())
             bar.update(1)
@@ -72,5 +74,6 @@ def rollout(planner: ChunkPlanner, seeds: Sequence[int], n_steps: int = 200,
     return RolloutLog(list(seeds), commanded=np.stack(commanded, axis=1),
                       states=np.stack(states, axis=1), coverage=np.stack(coverages, axis=1),
                       executed_chunk=np.stack(executed_chunk, axis=1),
+                      wanted=np.stack(wanted, axis=1),
                       planning_s=stats.planning_s, planned_chunks=stats.planned_chunks,
                       planner_calls=stats.planner_calls)

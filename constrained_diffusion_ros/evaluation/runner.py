@@ -47,6 +47,11 @@ class CellResult:
     s_ci: list[float] | None = None
     r_ci: list[float] | None = None
     success_ci: list[float] | None = None
+    # Liveness (None in reports written before it was measured): executed steps whose setpoint
+    # the shield changed, and the mean change (px); steps of standstills at a zone's edge.
+    interventions: float | None = None
+    intervention_px: float | None = None
+    standstill_steps: float | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -57,12 +62,33 @@ def _zones_per_step(scenario: Scenario, n_steps: int) -> list:
     return [scenario.zones_at(t) for t in range(n_steps)]
 
 
+STANDSTILL_STEPS = 5  # a standstill: at least this many steps in a row
+STANDSTILL_PX = 0.5  # of motion per step at most
+STANDSTILL_NEAR_PX = 5.0  # with a zone this close to the pusher's disc
+
+
+def standstills(moved: np.ndarray, near: np.ndarray) -> np.ndarray:
+    """(E, T) bool: steps in runs of at least STANDSTILL_STEPS where the pusher moved under
+    STANDSTILL_PX (`moved`, px per step) with a zone near its disc (`near`): a filter that keeps
+    the pusher safe by parking it at a zone's edge, not a pusher waiting in open space."""
+    still = (moved < STANDSTILL_PX) & near
+    marked = np.zeros_like(still)
+    for episode, row in enumerate(still):
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], row.astype(np.int8), [0]])))
+        for start, end in zip(edges[::2], edges[1::2]):
+            if end - start >= STANDSTILL_STEPS:
+                marked[episode, start:end] = True
+    return marked
+
+
 def cell_metrics(log: RolloutLog, rows: np.ndarray, scenario: Scenario) -> dict[str, object]:
-    """s, r, r_body and path crossings of one scenario's episodes in a batched log."""
+    """s, r, r_body, path crossings and liveness of one scenario's episodes in a batched
+    log."""
     commanded, pusher = log.commanded[rows], log.pusher[rows]
     n_steps = commanded.shape[1]
     previous = np.concatenate([pusher[:, :1], commanded[:, :-1]], axis=1)
-    inside, body, crossing = (np.zeros(commanded.shape[:2], dtype=bool) for _ in range(3))
+    inside, body, crossing, near = (np.zeros(commanded.shape[:2], dtype=bool)
+                                    for _ in range(4))
     zones = _zones_per_step(scenario, n_steps)
     steps = [np.arange(n_steps)] if not scenario.moving else [[t] for t in range(n_steps)]
     for columns in steps:
@@ -70,13 +96,23 @@ def cell_metrics(log: RolloutLog, rows: np.ndarray, scenario: Scenario) -> dict[
         cmd = torch.from_numpy(commanded[:, columns])
         inside[:, columns] = area.contains(cmd).numpy()
         after = torch.from_numpy(pusher[:, 1:][:, columns])
-        body[:, columns] = (area.signed_distance(after) < PUSHT_ROBOT.pusher_radius).numpy()
+        clearance = area.signed_distance(after).numpy()
+        body[:, columns] = clearance < PUSHT_ROBOT.pusher_radius
+        near[:, columns] = clearance < PUSHT_ROBOT.pusher_radius + STANDSTILL_NEAR_PX
         start = torch.from_numpy(previous[:, columns])
         crossing[:, columns] = (area.crosses(start, cmd) & ~area.contains(start)).numpy()
     start = torch.from_numpy(pusher[:, 0])
     started_inside = (zones[0].signed_distance(start) < PUSHT_ROBOT.pusher_radius).numpy()
     outside_starts = body[~started_inside].sum(axis=1)
     best, successes, per_episode_r = log.best_score[rows], log.success[rows], inside.sum(axis=1)
+    liveness = {}
+    if log.wanted is not None:
+        change = np.linalg.norm(commanded - log.wanted[rows], axis=-1)
+        changed = change > 1e-6
+        moved = np.linalg.norm(np.diff(pusher, axis=1), axis=-1)
+        liveness = {"interventions": float(changed.sum(axis=1).mean()),
+                    "intervention_px": float(change[changed].mean()) if changed.any() else 0.0,
+                    "standstill_steps": float(standstills(moved, near).sum(axis=1).mean())}
     return {
         "s": float(best.mean()),
         "final_score": float(log.final_score[rows].mean()),
@@ -91,6 +127,7 @@ def cell_metrics(log: RolloutLog, rows: np.ndarray, scenario: Scenario) -> dict[
         "s_ci": list(bootstrap_mean(best)),
         "r_ci": list(bootstrap_mean(per_episode_r)),
         "success_ci": list(wilson(int(successes.sum()), len(successes))),
+        **liveness,
     }
 
 

@@ -101,6 +101,7 @@ class ChunkExecutor:
         self.n_action_steps = config.n_action_steps
         self.stats = ExecutionStats()
         self.last_plan: PlanRecord | None = None  # the plan made at the latest `act`, if any
+        self.wanted: np.ndarray | None = None  # the latest `act`'s setpoints before the guard
         self.history: ObservationHistory | None = None
 
     def reset(self, noise_seed: int | None = None) -> None:
@@ -136,6 +137,7 @@ class ChunkExecutor:
         chunk = np.where(waiting, -1, self.queue.installs)
         self.handed_over = (chunk != self.executed_id) & ~waiting
         self.executed_id = chunk
+        self.wanted = action  # what the plan asked for, before the guard's last word
         # The guard sees the positions as the planner saw them (float32 observations).
         self.held = self.planner.guard(area, self.history.latest, action, step)
         return self.held

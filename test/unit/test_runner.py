@@ -161,3 +161,23 @@ def test_an_unknown_scenario_is_a_clear_error(tmp_path: Path,
     assert "unknown scenarios ['nowhere']" in err and "center_0.2" in err  # names the known ones
     assert "Traceback" not in err
     assert not (tmp_path / "o").exists()
+
+
+def test_liveness_counts_the_guards_changes_and_standstills_at_a_zone_edge(
+        scenarios: dict[str, Scenario]) -> None:
+    """A pusher parked 3 px from the square's edge for 8 steps is a standstill; the same wait
+    in open space, or a run of 4 steps, is not. Steps whose setpoint the guard changed count
+    as interventions, with their mean change."""
+    scenario = scenarios["center_0.2"]  # the square [204.8, 307.2]^2
+    steps = 30
+    pusher = np.stack([np.linspace(20.0, 80.0, steps + 1)] * 2, axis=1)  # moving, far away
+    pusher[1:9] = [204.8 - 15 - 3, 256.0]  # parked at the edge after steps 0..7: 8 steps
+    pusher[12:16] = [204.8 - 15 - 3, 300.0]  # parked after steps 11..14: only 4 steps
+    pusher[20:28] = [60.0, 60.0]  # parked in open space
+    commanded = pusher[1:].copy()
+    log = hand_made_log(commanded, pusher)
+    log.wanted = commanded.copy()[None]
+    log.wanted[0, [3, 4]] += [[3.0, 4.0], [0.0, 1.0]]
+    metrics = cell_metrics(log, np.array([0]), scenario)
+    assert metrics["standstill_steps"] == 7  # moved 0 px in steps 1..7 (step 0 moved there)
+    assert metrics["interventions"] == 2 and metrics["intervention_px"] == pytest.approx(3.0)

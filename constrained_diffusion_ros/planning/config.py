@@ -57,6 +57,8 @@ class ConstraintConfig:
     margin_shrink: float = 0.0  # px: resampling and push see the zones grown by this much
     # more at the first update, shrinking to nothing at the last
     shield: bool = False  # keep the pusher's predicted path (its disc) out, setpoint by setpoint
+    slide: bool = True  # shield and path repair: the nearest safe point (around a zone); false:
+    # the largest safe step along the blocked line (stops in front of it)
     from_scratch: int = 0  # >0: no hooks; draw this many whole chunks, keep the first that fits
     candidates: int = 1  # >1: this many steered chunks per episode; keep the one the final
     # projection and path repair moved least

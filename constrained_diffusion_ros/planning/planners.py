@@ -77,7 +77,7 @@ class ConstrainedPlanner:
         self.policy, self.config, self.robot = policy, config, robot
         self.sampler = DenoisingSampler(policy, config.sampler, config.denoising_steps,
                                        config.timestep_spacing, config.eta)
-        self.shield = PusherShield(robot) if config.shield else None
+        self.shield = PusherShield(robot, slide=config.slide) if config.shield else None
 
     @property
     def policy_config(self) -> PolicyConfig:
@@ -105,7 +105,7 @@ class ConstrainedPlanner:
         if c.project:
             hooks.append(FinalProjection(area, c.margin))
         if c.path_repair:
-            hooks.append(PathRepair(area, pusher, first, c.margin, c.repair_from))
+            hooks.append(PathRepair(area, pusher, first, c.margin, c.repair_from, c.slide))
         return hooks
 
     def plan(self, observations: Tensor, zones: RestrictedArea | None,

@@ -6,10 +6,16 @@ carries its velocity into the next setpoint and cuts corners, so its disc can di
 between setpoints. The pusher is kinematic, so its path is known exactly from its position,
 velocity and setpoint (`RobotModel.transition`). The shield accepts a setpoint only if
 holding it from now on keeps the pusher centre outside the area inflated by its radius (over a
-horizon, and at the setpoint itself, where the pusher comes to rest); else it takes the largest
-step from the last accepted setpoint towards it that does. The last accepted
-setpoint was itself checked from the previous state, so a safe choice exists as long as the
-zones do not change under the pusher (a shield in the sense of safe reinforcement learning).
+horizon, and at the setpoint itself, where the pusher comes to rest); else it takes the safe
+candidate nearest to it (`slide`, the default): the minimal change, as a control-barrier-function
+filter makes it, so where the straight step is blocked the motion along the zone's boundary is
+kept and the pusher slides around a small zone instead of parking in front of it. The
+candidates are the steps along the blocked line, points around the wanted setpoint and that
+setpoint moved just out of the grown zone. With `slide=False` it takes the largest safe step
+along the line instead (the filter before; it stops the pusher where the line grazes a zone).
+The last accepted setpoint was itself checked from the previous state and is a candidate, so a
+safe choice exists as long as the zones do not change under the pusher (a shield in the sense
+of safe reinforcement learning).
 """
 
 from __future__ import annotations
@@ -27,6 +33,10 @@ FRACTIONS = (0.75, 0.5, 0.25, 0.0)  # after the whole way (1.0) was refused
 # longer gap the pusher has come to rest at its setpoint for all a shield can tell.
 MAX_GAP_STEPS = 10
 SENT_KEPT = 8  # setpoints remembered per observation (a real-time node may send several)
+# Sliding: points around the wanted setpoint, at these fractions of the blocked step's length
+# in each of DIRECTIONS directions, besides the steps along the line and the way out.
+RING_FRACTIONS = (0.125, 0.25, 0.5, 0.75, 1.0)
+DIRECTIONS = 16
 
 
 class PusherShield:
@@ -34,7 +44,7 @@ class PusherShield:
     pusher radius, so a pusher centre outside it means a disc outside the zones."""
 
     def __init__(self, robot: RobotModel, horizon_s: float = 0.6, margin: float = 0.5,
-                 escape: float = 20.0) -> None:
+                 escape: float = 20.0, slide: bool = True) -> None:
         horizon = max(robot.substeps, round(horizon_s * robot.physics_hz))
         coefficients = robot.transition(max(horizon, MAX_GAP_STEPS * robot.substeps))
         # Position after each substep, then at rest (the setpoint itself): the horizon may end
@@ -45,7 +55,11 @@ class PusherShield:
         self.control_steps = coefficients[robot.substeps - 1::robot.substeps][:MAX_GAP_STEPS]
         self.fractions = torch.tensor(FRACTIONS, dtype=torch.float64)
         self.reach = (self.path[:, 2].abs().max(), self.path[:, 1].abs().max())
-        self.margin, self.escape = margin, escape
+        self.margin, self.escape, self.slide = margin, escape, slide
+        angles = torch.arange(DIRECTIONS, dtype=torch.float64) * (2 * torch.pi / DIRECTIONS)
+        unit = torch.stack([angles.cos(), angles.sin()], dim=-1)
+        self.ring = (torch.tensor(RING_FRACTIONS, dtype=torch.float64)[:, None, None]
+                     * unit[None]).reshape(-1, 2)  # (R * D, 2) offsets per px of step length
         self.reset()
 
     def reset(self) -> None:
@@ -140,8 +154,18 @@ class PusherShield:
         area, p, v = area.select_rows(blocked), p[blocked], v[blocked]
         start, goal = start[blocked], goal[blocked]
         candidates = start[:, None] + self.fractions[None, :, None] * (goal - start)[:, None]
+        if self.slide:
+            step = (goal - start).norm(dim=-1).clamp_min(1.0)
+            around = goal[:, None] + step[:, None, None] * self.ring[None]
+            out = area.project_out(goal.float(), 2 * self.margin).double()[:, None]
+            candidates = torch.cat([candidates, out, around], dim=1)
         safe = self._safe(area, p, v, candidates)
-        fallback = candidates[torch.arange(len(blocked)), safe.float().argmax(dim=1)]
+        if self.slide:  # the safe candidate nearest to the wanted setpoint: the minimal change
+            distance = (candidates - goal[:, None]).norm(dim=-1)
+            pick = torch.where(safe, distance, torch.inf).argmin(dim=1)
+        else:  # the largest safe step along the line
+            pick = safe.float().argmax(dim=1)
+        fallback = candidates[torch.arange(len(blocked)), pick]
         # No safe candidate (it started inside, or a zone moved onto it): head for the nearest
         # point `escape` px clear, so a zone still coming does not catch it at once.
         stuck = ~safe.any(dim=1)

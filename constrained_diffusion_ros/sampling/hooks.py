@@ -10,6 +10,7 @@ workspace pixels, batched over episodes and waypoints; the constraint hooks cons
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import torch
@@ -72,8 +73,12 @@ class FinalProjection:
 @dataclass
 class PathRepair:
     """After the last update, the straight path pusher -> first executed waypoint -> ... must
-    not enter the area: a waypoint whose incoming segment enters is pulled back along it to
-    just before the entry (`margin` px), and the check runs again from there.
+    not enter the area: a waypoint whose incoming segment enters is moved to the nearest point
+    (`slide`, the default) that lies `margin` px outside with a free incoming segment, so the
+    path goes around a small zone; where no such point is found among the candidates (rings
+    around the waypoint, and the waypoint moved out), or with `slide=False`, it is pulled back
+    along the segment to just before the entry, which stops the path in front of the zone.
+    The check runs again from there.
 
     Segments that start inside (the pusher already in a zone) cannot be repaired this way and
     are left to the projection and the next replanning.
@@ -85,6 +90,7 @@ class PathRepair:
     margin: float = 1.0
     from_progress: float = 1.0  # < 1: also after the updates from this progress on, so the
     # updates after a repair can adapt the rest of the chunk to it
+    slide: bool = True
 
     def __call__(self, sample: Tensor, step: DenoisingStep) -> Tensor:
         if step.index != step.total - 1 and step.progress < self.from_progress:
@@ -102,9 +108,46 @@ class PathRepair:
             seg_start, seg_end = starts[rows, cols], path[rows, cols]
             length = (seg_end - seg_start).norm(dim=-1).clamp_min(1e-9)
             keep = (clear[rows, cols] - self.margin / length).clamp_min(0.0)
+            repaired = seg_start + keep[:, None] * (seg_end - seg_start)
+            if self.slide:
+                repaired = self._around(rows, seg_start, seg_end, repaired)
             path = path.clone()
-            path[rows, cols] = seg_start + keep[:, None] * (seg_end - seg_start)
+            path[rows, cols] = repaired.to(path)
         return torch.cat([head, path], dim=1)
+
+    def _around(self, rows: Tensor, seg_start: Tensor, seg_end: Tensor,
+                pulled_back: Tensor) -> Tensor:
+        """(R, 2) the step turned as little as it must be for its segment to be free and its
+        end `margin` outside (its length kept if it can be, else shortened), so the path turns
+        along the zone's side and goes on; the pulled-back point where no turn is free. Nearest
+        to the waypoint would park the path on the zone's face, from where no straight segment
+        gets around."""
+        area = self.area.select_rows(rows)
+        begin = seg_start.to(torch.float64)
+        step = seg_end.to(torch.float64) - begin
+        turned = torch.einsum("kij,rj->rki", _TURNS.to(step), step)  # (R, K, 2)
+        candidates = begin[:, None] + turned
+        starts = begin[:, None].expand_as(candidates)
+        free = (area.segment_clear_fraction(starts, candidates) >= 1.0) \
+            & (area.signed_distance(candidates) >= self.margin)
+        first = free.float().argmax(dim=1)  # _TURNS runs from the least turn to the most
+        chosen = candidates[torch.arange(len(rows)), first]
+        return torch.where(free.any(dim=1)[:, None], chosen, pulled_back.to(torch.float64))
+
+
+def _turns() -> Tensor:
+    """(K, 2, 2) rotations, each scaled by 1, 3/4 or 1/2, ordered by how far they turn (either
+    way), the longest first at each angle (`PathRepair`)."""
+    degrees = [sign * a for a in range(10, 160, 10) for sign in (1, -1)]
+    matrices = []
+    for angle in degrees:
+        c, s = math.cos(math.radians(angle)), math.sin(math.radians(angle))
+        for scale in (1.0, 0.75, 0.5):
+            matrices.append(scale * torch.tensor([[c, -s], [s, c]], dtype=torch.float64))
+    return torch.stack(matrices)
+
+
+_TURNS = _turns()
 
 
 @dataclass

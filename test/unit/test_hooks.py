@@ -6,6 +6,8 @@ import math
 
 import pytest
 import torch
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 from samples import CENTRE, L_SHAPE, LEFT_BAND, NORMALIZER, OVERLAPPING, SQUARE, make_step
 
 from constrained_diffusion_ros.sampling.hooks import (
@@ -168,7 +170,7 @@ def test_path_repair_pulls_a_crossing_path_back_before_the_zone() -> None:
     assert zone.crosses(first_starts, first_ends)[0].any()
     assert not zone.crosses(first_starts, first_ends)[1].any()
 
-    hook = PathRepair(zone, start, first_index=1, margin=1.0)
+    hook = PathRepair(zone, start, first_index=1, margin=1.0, slide=False)
     assert torch.equal(hook(sample.clone(), make_step(0)), sample)  # only after the last update
     out = hook(sample.clone(), make_step(4))
 
@@ -184,3 +186,41 @@ def test_path_repair_pulls_a_crossing_path_back_before_the_zone() -> None:
                                torch.full((int((~before).sum()),), 199.0), atol=1e-3, rtol=0)
 
 
+
+
+def test_path_repair_slides_a_crossing_path_around_the_zone() -> None:
+    """The same crossing path with `slide`: every waypoint whose incoming segment entered goes
+    to a nearby point with a free segment, so the path goes on past the zone instead of stopping
+    at x = 199; nothing enters, and the last waypoint ends beyond the zone."""
+    zone = ZoneSet.from_polygons([rectangle(200, 200, 300, 300)])
+    start = torch.tensor([[100.0, 250.0]])
+    xs = torch.linspace(140.0, 460.0, 8)
+    crossing = torch.stack([xs, torch.full_like(xs, 250.0)], dim=-1)[None]
+    sample = torch.cat([torch.tensor([[[250.0, 250.0]]]), crossing], dim=1)
+    out = PathRepair(zone, start, first_index=1, margin=1.0)(sample.clone(), make_step(4))
+    starts, ends = path_segments(start, out[:, 1:])
+    assert not zone.crosses(starts, ends).any()
+    assert (zone.signed_distance(out[0, 1:]) >= 1.0 - 1e-6).all()
+    assert out[0, -1, 0] > 300.0  # past the zone, not parked in front of it
+
+
+POSTS = ZoneSet.from_polygons([rectangle(x, y, x + 30, y + 30) for x, y in
+                               ((135, 135), (347, 135), (135, 347), (347, 347), (241, 241))]
+                              ).inflate(15.0)
+coordinate = st.floats(0, 512, allow_nan=False)
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.tuples(coordinate, coordinate),
+       st.lists(st.tuples(coordinate, coordinate), min_size=8, max_size=8))
+def test_the_sliding_path_repair_never_leaves_a_segment_into_the_area(
+        start: tuple, waypoints: list) -> None:
+    """From a pusher outside, the repaired path (pusher -> each executed waypoint in turn)
+    never enters the area, and no executed waypoint lies in it, wherever the waypoints were."""
+    pusher = torch.tensor([start], dtype=torch.float64)
+    assume(not bool(POSTS.contains(pusher)[0]))
+    sample = torch.tensor([[(256.0, 256.0), *waypoints]], dtype=torch.float64)
+    out = PathRepair(POSTS, pusher, first_index=1, margin=1.0)(sample, make_step(4))
+    starts, ends = path_segments(pusher, out[:, 1:])
+    assert not POSTS.crosses(starts, ends).any()
+    assert not POSTS.contains(out[0, 1:]).any()

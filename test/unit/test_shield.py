@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from constrained_diffusion_ros.planning.config import ConstraintConfig
@@ -209,3 +209,50 @@ def test_the_planner_shields_against_the_zones_grown_by_the_pusher_radius(
     assert clearance(out)[0] >= AGENT_RADIUS + 19  # the escape: 20 px clear of the grown zone
     free = planner.guard(None, near, np.array([[300.0, 300.0]]), step=1)
     np.testing.assert_array_equal(free, [[300.0, 300.0]])  # no zones: nothing to shield from
+
+
+POST = ZoneSet.from_polygons([rectangle(285, 285, 315, 315)])  # a 30 px post
+STRAIGHT_AT_THE_POST = [(120.0 + 40 * t, 300.0) for t in range(1, 12)]  # through its middle
+
+
+def drive_past(slide: bool) -> np.ndarray:
+    """The pusher from (120, 300) sent straight through the post, shielded against it."""
+    sim, shield, visited = PushTSim(), PusherShield(PUSHT_ROBOT, slide=slide), []
+    sim.set_state([120.0, 300.0, 80.0, 60.0, 0.0])
+    grown = POST.inflate(AGENT_RADIUS)
+    for step, setpoint in enumerate(STRAIGHT_AT_THE_POST + STRAIGHT_AT_THE_POST[-1:] * 8):
+        position = sim.state[None, :2].astype(np.float32).astype(float)
+        target = shield(grown, position, np.array([setpoint]), step)
+        visited.append(sim.step(target[0])[:2])
+    return np.array(visited)
+
+
+def test_the_old_shield_parks_in_front_of_a_post_and_the_new_one_slides_past_it() -> None:
+    """Setpoints straight through a small post: the largest safe step along the line stops
+    the pusher in front of it for good; the safe setpoint nearest the wanted one takes it
+    around, and it ends where it was sent, its disc out of the post all the way."""
+    stopped, slid = drive_past(slide=False), drive_past(slide=True)
+    post = POST.signed_distance
+    assert post(torch.from_numpy(stopped)).min() >= AGENT_RADIUS
+    assert post(torch.from_numpy(slid)).min() >= AGENT_RADIUS
+    assert stopped[:, 0].max() < 285  # never past the post's front
+    assert slid[-1, 0] > 500 and abs(slid[-1, 1] - 300) < 5  # past it, back on its line
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.tuples(st.floats(0, 512), st.floats(0, 512)), near_the_grown_zone(),
+       near_the_grown_zone(), st.tuples(st.floats(-400, 400), st.floats(-400, 400)))
+def test_the_sliding_shield_never_lets_the_disc_into_the_grown_zone_within_the_horizon(
+        position: tuple, held: tuple, goal: tuple, velocity: tuple) -> None:
+    """From any state whose held setpoint is safe (so a safe choice exists), the setpoint the
+    sliding shield returns keeps the pusher's predicted path, every substep of the horizon
+    and at rest, clear of the zone grown by its radius."""
+    shield = PusherShield(PUSHT_ROBOT, slide=True)
+    p, v = torch.tensor([position], dtype=torch.float64), torch.tensor([velocity],
+                                                                       dtype=torch.float64)
+    assume(bool(shield._safe(INFLATED, p, v, torch.tensor([[held]], dtype=torch.float64))[0, 0]))
+    shield.last = (0, np.array([position]), [np.array([held])], np.array([velocity]))
+    out = shield(INFLATED, np.array([position]), np.array([goal]), 0)
+    a, b, c = shield.path.unbind(-1)
+    path = a[:, None] * p + b[:, None] * v + c[:, None] * torch.from_numpy(out)
+    assert INFLATED.signed_distance(path).min() >= shield.margin - 1e-3

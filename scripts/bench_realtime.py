@@ -17,6 +17,7 @@ the policy run, drop a square zone on the waypoints the plan in force is about t
     the node;
   - setpoints within the pusher radius of the zone after that moment, and steps where the
     pusher's disc overlaps the zone (placed so that it starts outside);
+  - standstills at a zone's edge, as the node counts them (`standstill_steps`, the longest);
   - the time from publishing a zone to the next plan the client receives;
 then a 1 kHz zone flood (zones in force = last message per id how soon after it ends; the period
 p99 against the same run without a flood), and `trial` under load. "loaded" means one busy
@@ -596,6 +597,10 @@ def run_condition(args: argparse.Namespace, loaded: bool) -> None:
                     "ticks_missed",
                     "tick_late_p99_ms", "clock_realtime", "executor_realtime",
                     "planning_priority")))
+                print("    standstills at a zone's edge (the node's count: 5+ steps under 0.5 px "
+                      "with a zone within 5 px of the disc): " + ", ".join(
+                          f"{key} {client.status.get(key, '?')}"
+                          for key in ("standstill_steps", "standstill_longest_s")))
                 if index == 0 and args.flood_hz > 0:
                     flood(client, args)
             finally:

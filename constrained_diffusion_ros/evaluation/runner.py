@@ -15,6 +15,7 @@ from constrained_diffusion_ros.evaluation.intervals import bootstrap_mean, wilso
 from constrained_diffusion_ros.evaluation.rollout import RolloutLog, rollout
 from constrained_diffusion_ros.evaluation.scenarios import Scenario
 from constrained_diffusion_ros.planning.config import ConstraintConfig
+from constrained_diffusion_ros.planning.liveness import STANDSTILL_NEAR_PX, standstills
 from constrained_diffusion_ros.planning.planners import MixedPlanner
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
@@ -60,25 +61,6 @@ class CellResult:
 def _zones_per_step(scenario: Scenario, n_steps: int) -> list:
     """The zone set in force at each step (one shared object when the scenario is static)."""
     return [scenario.zones_at(t) for t in range(n_steps)]
-
-
-STANDSTILL_STEPS = 5  # a standstill: at least this many steps in a row
-STANDSTILL_PX = 0.5  # of motion per step at most
-STANDSTILL_NEAR_PX = 5.0  # with a zone this close to the pusher's disc
-
-
-def standstills(moved: np.ndarray, near: np.ndarray) -> np.ndarray:
-    """(E, T) bool: steps in runs of at least STANDSTILL_STEPS where the pusher moved under
-    STANDSTILL_PX (`moved`, px per step) with a zone near its disc (`near`): a filter that keeps
-    the pusher safe by parking it at a zone's edge, not a pusher waiting in open space."""
-    still = (moved < STANDSTILL_PX) & near
-    marked = np.zeros_like(still)
-    for episode, row in enumerate(still):
-        edges = np.flatnonzero(np.diff(np.concatenate([[0], row.astype(np.int8), [0]])))
-        for start, end in zip(edges[::2], edges[1::2]):
-            if end - start >= STANDSTILL_STEPS:
-                marked[episode, start:end] = True
-    return marked
 
 
 def cell_metrics(log: RolloutLog, rows: np.ndarray, scenario: Scenario) -> dict[str, object]:

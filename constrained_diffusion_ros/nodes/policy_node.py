@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import gc
 import json
+import math
 import os
 import pickle
 import sys
@@ -43,6 +44,7 @@ from visualization_msgs.msg import MarkerArray
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.planning.config import load_configurations, safe_yaml
 from constrained_diffusion_ros.planning.executor import ChunkExecutor
+from constrained_diffusion_ros.planning.liveness import StandstillMeter
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.planning.realtime import (
     CLOCK_PRIORITY,
@@ -294,6 +296,7 @@ class PolicyNode(Node):
         self.pusher_stamp: float | None = None  # its observation's stamp
         self.last_safe_setpoint: np.ndarray | None = None
         self.observations_refused = 0
+        self.standstills = StandstillMeter()  # the pusher parked at a zone's edge
         self.zone_change_time: float | None = None
         self.replan_latency_ms = float("nan")
         self.zone_to_setpoint_ms = float("nan")  # the last safe setpoint sent for a zone
@@ -412,8 +415,20 @@ class PolicyNode(Node):
             self.get_logger().warning(f"observation refused, last safe setpoint held: {reason}",
                                       throttle_duration_sec=1.0)
             return None
+        if new_episode:
+            self.standstills.reset_run()
+        else:
+            self._measure_standstill(pusher)
         self.latest_pusher, self.pusher_stamp = pusher, stamp
         return observation
+
+    def _measure_standstill(self, pusher: np.ndarray) -> None:
+        """One more step for the standstill count: how far the pusher moved, how near a zone."""
+        area = self.zones.area_at(0)
+        clearance = math.inf if area is None else \
+            float(area.signed_distance(torch.from_numpy(pusher[None]))[0])
+        moved = float(np.linalg.norm(pusher - self.latest_pusher))
+        self.standstills.update(moved, clearance, self.robot.pusher_radius)
 
     def _sendable(self, setpoint: np.ndarray) -> np.ndarray:
         """Never a non-finite or out-of-workspace setpoint, nor any while zones leave the
@@ -513,6 +528,8 @@ class PolicyNode(Node):
         values = {"configuration": self.config.name, "mode": self.mode,
                   "violations": self.violations, "unsound_setpoints": self.unsound_setpoints,
                   "observations_refused": self.observations_refused,
+                  "standstill_steps": self.standstills.steps,
+                  "standstill_longest_s": f"{self.standstills.longest / self.robot.control_hz:.1f}",
                   "plans": self.chunk_executor.stats.planner_calls,
                   "planning_ms": f"{planning_ms:.1f}",
                   "replan_latency_ms": f"{self.replan_latency_ms:.1f}",

@@ -200,3 +200,21 @@ def test_a_killed_planning_process_is_restarted_and_error_stays_until_it_plans(
     assert levels_before and set(levels_before) == {DiagnosticStatus.ERROR}
     status = link.latest_status(lambda v: v.get("planning_failed") == "False")
     assert status["planning_restarts"] == "1" and planning_child(node) != child
+
+
+def test_a_pusher_parked_at_a_zones_edge_is_reported_as_a_standstill(
+        link: RealtimeLink) -> None:
+    """The pusher reported in one place for 8 steps with a zone 2 px from its disc: the node's
+    diagnostics count the standstill (5 steps or more), as the evaluation counts them."""
+    link.planning()
+    beside = PolygonInstanceStamped()
+    beside.header.frame_id, beside.polygon.id = FRAME_ID, 14
+    x = PUSHER[0] + AGENT_RADIUS + 2
+    beside.polygon.polygon.points = [Point32(x=a, y=b, z=0.0) for a, b in (
+        (x, 440.0), (x + 30, 440.0), (x + 30, 500.0), (x, 500.0))]
+    link.zones.publish(beside)
+    link.latest_status(lambda v: "14" in v["zone_ids"].split(","))
+    for _ in range(8):
+        link.observe()
+    status = link.latest_status(lambda v: int(v.get("standstill_steps", 0)) >= 5)
+    assert float(status["standstill_longest_s"]) >= 0.5

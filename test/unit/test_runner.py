@@ -16,6 +16,7 @@ from constrained_diffusion_ros.evaluation.rollout import RolloutLog
 from constrained_diffusion_ros.evaluation.runner import cell_metrics, evaluate_configurations
 from constrained_diffusion_ros.evaluation.scenarios import Scenario, load_scenarios
 from constrained_diffusion_ros.planning.config import ConstraintConfig
+from constrained_diffusion_ros.planning.liveness import StandstillMeter, standstills
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.weights import save_policy
 from sim_bridge import WORKSPACE_SIZE
@@ -181,3 +182,15 @@ def test_liveness_counts_the_guards_changes_and_standstills_at_a_zone_edge(
     metrics = cell_metrics(log, np.array([0]), scenario)
     assert metrics["standstill_steps"] == 7  # moved 0 px in steps 1..7 (step 0 moved there)
     assert metrics["interventions"] == 2 and metrics["intervention_px"] == pytest.approx(3.0)
+
+
+def test_the_nodes_standstill_meter_counts_as_the_evaluation_does() -> None:
+    """One definition, two places: step by step, the meter marks the runs `standstills` marks."""
+    rng = np.random.default_rng(0)
+    moved = np.where(rng.random(200) < 0.7, 0.1, 3.0)
+    clearance = np.where(rng.random(200) < 0.8, 17.0, 40.0)
+    meter = StandstillMeter()
+    for m, c in zip(moved, clearance):
+        meter.update(float(m), float(c), 15.0)
+    marked = standstills(moved[None], (clearance < 20.0)[None])[0]
+    assert meter.steps == marked.sum() > 0

@@ -1,0 +1,50 @@
+"""Standstills at a zone's edge: how a safety filter that stops instead of steering shows.
+
+A pusher that stays put with a zone next to its disc is the filter's doing far more often than
+the policy's; the evaluation counts them per episode (`standstills`), the policy node per step
+as it runs (`StandstillMeter`), with one definition.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+STANDSTILL_STEPS = 5  # a standstill: at least this many control steps in a row
+STANDSTILL_PX = 0.5  # of motion per step at most
+STANDSTILL_NEAR_PX = 5.0  # with a zone this close to the pusher's disc
+
+
+def standstills(moved: np.ndarray, near: np.ndarray) -> np.ndarray:
+    """(E, T) bool: steps in runs of at least STANDSTILL_STEPS where the pusher moved under
+    STANDSTILL_PX (`moved`, px per step) with a zone near its disc (`near`)."""
+    still = (moved < STANDSTILL_PX) & near
+    marked = np.zeros_like(still)
+    for episode, row in enumerate(still):
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], row.astype(np.int8), [0]])))
+        for start, end in zip(edges[::2], edges[1::2]):
+            if end - start >= STANDSTILL_STEPS:
+                marked[episode, start:end] = True
+    return marked
+
+
+class StandstillMeter:
+    """The same count, one control step at a time: `steps` in standstills so far, `longest`
+    run (steps)."""
+
+    def __init__(self) -> None:
+        self.steps = self.longest = self._run = 0
+
+    def update(self, moved: float, clearance: float, radius: float) -> None:
+        """One step: the pusher moved `moved` px, and its centre is `clearance` px from the
+        nearest zone (a disc of `radius`)."""
+        if moved < STANDSTILL_PX and clearance < radius + STANDSTILL_NEAR_PX:
+            self._run += 1
+            self.steps += STANDSTILL_STEPS if self._run == STANDSTILL_STEPS else \
+                int(self._run > STANDSTILL_STEPS)
+            self.longest = max(self.longest, self._run if self._run >= STANDSTILL_STEPS else 0)
+        else:
+            self._run = 0
+
+    def reset_run(self) -> None:
+        """A new episode: a run does not carry over."""
+        self._run = 0

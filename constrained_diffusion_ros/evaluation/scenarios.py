@@ -103,7 +103,8 @@ def plugin_from_spec(spec: object, where: str) -> RestrictedArea:
         raise ValueError(f"{where}: plugin is {{class: 'package.module:Class' or an entry "
                          f"point name, parameters: {{...}}}}")
     try:
-        return load_area(spec["class"], spec.get("parameters") or {})
+        return load_area(spec["class"], spec.get("parameters") or {},
+                         workspace=PUSHT_ROBOT.workspace)
     except ValueError as error:
         raise ValueError(f"{where}: {error}") from None
 

@@ -57,7 +57,7 @@ from constrained_diffusion_ros.planning.robot import RobotModel
 from constrained_diffusion_ros.policy.device import DEVICES
 from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
-from constrained_diffusion_ros.zones.area import RestrictedArea
+from constrained_diffusion_ros.zones.area import Bounds, RestrictedArea
 from constrained_diffusion_ros.zones.geometry import leaves_no_room
 from constrained_diffusion_ros.zones.grid import (
     DEFAULT_THRESHOLD,
@@ -172,8 +172,9 @@ def keep_pending(pending: dict[float, np.ndarray], stamp: float, half: np.ndarra
         del pending[next(iter(pending))]
 
 
-def plug_in_area(spec: str, parameters: str) -> RestrictedArea | None:
-    """The plug-in check named by the parameters, or None; ValueError with one line."""
+def plug_in_area(spec: str, parameters: str, workspace: Bounds) -> RestrictedArea | None:
+    """The plug-in check named by the parameters, probed over `workspace`, or None;
+    ValueError with one line."""
     if not spec:
         return None
     keywords = safe_yaml(parameters, "parameter restricted_area_parameters") \
@@ -181,7 +182,7 @@ def plug_in_area(spec: str, parameters: str) -> RestrictedArea | None:
     if not isinstance(keywords, dict):
         raise ValueError(f"parameter restricted_area_parameters must be a mapping, got "
                          f"{parameters!r}")
-    return load_area(spec, keywords)
+    return load_area(spec, keywords, workspace=workspace)
 
 
 def _check_picklable(area: RestrictedArea | None, spec: str) -> None:
@@ -214,7 +215,8 @@ class PolicyNode(Node):
         self.configurations = load_configurations(values["configurations_file"])
         self.zones = LiveZones(values["max_zones"], values["max_vertices"],
                                plug_in_area(values["restricted_area"],
-                                            values["restricted_area_parameters"]),
+                                            values["restricted_area_parameters"],
+                                            self.robot.workspace),
                                workspace=self.robot.workspace)
         if self.mode == "realtime" and values["planning_process"]:
             _check_picklable(self.zones.fixed, values["restricted_area"])

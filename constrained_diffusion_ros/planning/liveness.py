@@ -19,11 +19,13 @@ def standstills(moved: np.ndarray, near: np.ndarray) -> np.ndarray:
     STANDSTILL_PX (`moved`, px per step) with a zone near its disc (`near`)."""
     still = (moved < STANDSTILL_PX) & near
     marked = np.zeros_like(still)
-    for episode, row in enumerate(still):
-        edges = np.flatnonzero(np.diff(np.concatenate([[0], row.astype(np.int8), [0]])))
-        for start, end in zip(edges[::2], edges[1::2]):
-            if end - start >= STANDSTILL_STEPS:
-                marked[episode, start:end] = True
+    if still.shape[1] < STANDSTILL_STEPS:
+        return marked
+    # A step is in such a run when a whole window of STANDSTILL_STEPS still steps covers it.
+    windows = np.lib.stride_tricks.sliding_window_view(still, STANDSTILL_STEPS, axis=1)
+    full = windows.all(axis=-1)  # (E, T - n + 1): the window starting there is all still
+    for offset in range(STANDSTILL_STEPS):
+        marked[:, offset:offset + full.shape[1]] |= full
     return marked
 
 

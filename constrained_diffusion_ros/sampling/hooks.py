@@ -73,12 +73,12 @@ class FinalProjection:
 @dataclass
 class PathRepair:
     """After the last update, the straight path pusher -> first executed waypoint -> ... must
-    not enter the area: a waypoint whose incoming segment enters is moved to the nearest point
-    (`slide`, the default) that lies `margin` px outside with a free incoming segment, so the
-    path goes around a small zone; where no such point is found among the candidates (rings
-    around the waypoint, and the waypoint moved out), or with `slide=False`, it is pulled back
-    along the segment to just before the entry, which stops the path in front of the zone.
-    The check runs again from there.
+    not enter the area: a waypoint whose incoming segment enters has its step turned as little
+    as it must be (`slide`, the default; up to 150 degrees either way, its length kept where it
+    can be) for the segment to be free and its end `margin` px outside, so the path goes along
+    the zone's side and on. Where no turn is free, or with `slide=False`, it is pulled back
+    along the segment to just before the entry, which stops the path in front of the zone. The
+    check runs again from there.
 
     Segments that start inside (the pusher already in a zone) cannot be repaired this way and
     are left to the projection and the next replanning.

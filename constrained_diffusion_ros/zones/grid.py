@@ -294,7 +294,6 @@ class MaskBuilder:
         self._job: tuple[int, dict, float | None] | None = None
         self._sequence = 0
         self._stopping = False
-        self.building = False  # a mask is being built now
         self._thread = threading.Thread(target=self._run, name="mask_builder", daemon=True)
         self._thread.start()
 
@@ -325,8 +324,6 @@ class MaskBuilder:
                 if self._stopping:
                     return
                 (sequence, grid, stamp), self._job = self._job, None
-                self.building = True
             built = build_mask(grid, self.caps, self.workspace, sequence, stamp)
-            self.building = False
             if sequence == self._sequence:  # not superseded while it was built
                 self._on_built(built)

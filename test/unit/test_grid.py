@@ -204,13 +204,15 @@ def test_random_masks_up_to_the_caps_are_built_or_refused_within_the_bound(
 def test_the_mask_builder_builds_off_the_callers_thread_and_only_the_newest() -> None:
     """The caller returns at once; a mask superseded before it is built is never handed over."""
     built: list[BuiltMask] = []
-    done = threading.Event()
+    newest_in = threading.Event()
     threads: set[str] = set()
+    last = 2  # the sequence number of the second submit
 
     def on_built(mask: BuiltMask) -> None:
         threads.add(threading.current_thread().name)
         built.append(mask)
-        done.set()
+        if mask.sequence == last:
+            newest_in.set()
 
     builder = MaskBuilder(on_built, MaskCaps(), WORKSPACE)
     try:
@@ -218,12 +220,9 @@ def test_the_mask_builder_builds_off_the_callers_thread_and_only_the_newest() ->
         builder.submit(values=checkerboard(128), resolution=4.0)  # refused: too fine
         square = np.zeros((128, 128), np.int8)
         square[10:20, 10:20] = 100
-        last = builder.submit(1.5, values=square, resolution=4.0)
+        assert builder.submit(1.5, values=square, resolution=4.0) == last
         assert time.perf_counter() - started < 0.05  # nothing built on this thread
-        assert done.wait(10.0)
-        deadline = time.monotonic() + 10.0
-        while builder.building and time.monotonic() < deadline:
-            time.sleep(0.01)
+        assert newest_in.wait(10.0)
         newest = built[-1]
         assert newest.sequence == last and newest.stamp == 1.5 and newest.polygons is not None
         assert len(newest.polygons) == 1

@@ -99,7 +99,9 @@ class PathRepair:
         for _ in range(path.shape[1]):
             starts = torch.cat([self.start[:, None].to(path), path[:, :-1]], dim=1)
             clear = self.area.segment_clear_fraction(starts, path)
-            entering = (clear < 1.0) & ~self.area.contains(starts)
+            # A segment that ends on the boundary is clear all the way, yet its end may test
+            # inside (points on the boundary test either way): that counts as entering too.
+            entering = ((clear < 1.0) | self.area.contains(path)) & ~self.area.contains(starts)
             if not entering.any():
                 break
             first = entering.float().argmax(dim=1)  # first entering segment per episode

@@ -6,7 +6,7 @@ import math
 
 import pytest
 import torch
-from hypothesis import assume, given, settings
+from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 from samples import CENTRE, L_SHAPE, LEFT_BAND, NORMALIZER, OVERLAPPING, SQUARE, make_step
 
@@ -213,6 +213,8 @@ coordinate = st.floats(0, 512, allow_nan=False)
 @settings(max_examples=150, deadline=None)
 @given(st.tuples(coordinate, coordinate),
        st.lists(st.tuples(coordinate, coordinate), min_size=8, max_size=8))
+@example((0.0, 0.0), [(0.0, 0.0)] * 7 + [(120.0, 347.0)])  # ends on a post's grown corner
+@example((0.0, 0.0), [(0.0, 0.0)] * 6 + [(120.0, 347.0), (0.0, 0.0)])
 def test_the_sliding_path_repair_never_leaves_a_segment_into_the_area(
         start: tuple, waypoints: list) -> None:
     """From a pusher outside, the repaired path (pusher -> each executed waypoint in turn)

@@ -77,7 +77,9 @@ class ConstrainedPlanner:
         self.policy, self.config, self.robot = policy, config, robot
         self.sampler = DenoisingSampler(policy, config.sampler, config.denoising_steps,
                                        config.timestep_spacing, config.eta)
-        self.shield = PusherShield(robot, slide=config.slide) if config.shield else None
+        # The filter before (slide: false) is kept as it was, for the side-by-side comparison.
+        self.shield = (PusherShield(robot, slide=config.slide, late=config.slide)
+                       if config.shield else None)
 
     @property
     def policy_config(self) -> PolicyConfig:

@@ -11,8 +11,13 @@ candidate nearest to it (`slide`, the default): the minimal change, as a control
 filter makes it, so where the straight step is blocked the motion along the zone's boundary is
 kept and the pusher slides around a small zone instead of parking in front of it. The
 candidates are the steps along the blocked line, points around the wanted setpoint and that
-setpoint moved just out of the grown zone. With `slide=False` it takes the largest safe step
-along the line instead (the filter before; it stops the pusher where the line grazes a zone).
+setpoint moved just out of the grown zone. Where even the nearest safe one brings the pusher
+no nearer (a zone squarely across its way, where the minimal change is to stay), it follows
+the zone's boundary: the safe point around it heading most nearly where it is sent. A
+real-time node's setpoint may reach the robot after its tick, so the one in force runs a step
+longer: a candidate must be safe taking over now or one step later (`late`). With
+`slide=False` it takes the largest safe step along the line instead, as the filter before
+did (it stops the pusher where the line grazes a zone).
 The last accepted setpoint was itself checked from the previous state and is a candidate, so a
 safe choice exists as long as the zones do not change under the pusher (a shield in the sense
 of safe reinforcement learning).
@@ -26,6 +31,7 @@ from torch import Tensor
 
 from constrained_diffusion_ros.planning.robot import RobotModel
 from constrained_diffusion_ros.zones.area import RestrictedArea
+from constrained_diffusion_ros.zones.geometry import BUFFER_SAG
 
 # Fractions of the way from the last accepted setpoint to the planned one, tried largest first.
 FRACTIONS = (0.75, 0.5, 0.25, 0.0)  # after the whole way (1.0) was refused
@@ -37,6 +43,12 @@ SENT_KEPT = 8  # setpoints remembered per observation (a real-time node may send
 # in each of DIRECTIONS directions, besides the steps along the line and the way out.
 RING_FRACTIONS = (0.125, 0.25, 0.5, 0.75, 1.0)
 DIRECTIONS = 16
+# Where the nearest safe setpoint brings the pusher less than STALL_PX nearer a wanted one at
+# least 4 STALL_PX away (a zone squarely in its way), it follows the zone's boundary instead:
+# the safe point around the setpoint in force, at most FOLLOW_PX away, that heads most nearly
+# toward the wanted setpoint, ties going the way it already moves.
+STALL_PX = 1.0
+FOLLOW_PX = 40.0
 
 
 class PusherShield:
@@ -44,9 +56,12 @@ class PusherShield:
     pusher radius, so a pusher centre outside it means a disc outside the zones."""
 
     def __init__(self, robot: RobotModel, horizon_s: float = 0.6, margin: float = 0.5,
-                 escape: float = 20.0, slide: bool = True) -> None:
+                 escape: float = 20.0, slide: bool = True, late: bool = True) -> None:
         horizon = max(robot.substeps, round(horizon_s * robot.physics_hz))
         coefficients = robot.transition(max(horizon, MAX_GAP_STEPS * robot.substeps))
+        # One control step holding the setpoint in force: where the pusher is if the chosen
+        # setpoint arrives after the robot's next tick (`late`).
+        self.one_step = torch.from_numpy(coefficients[robot.substeps - 1]) if late else None
         # Position after each substep, then at rest (the setpoint itself): the horizon may end
         # before a pusher far away gets there, and a setpoint is held until the next one.
         at_rest = np.array([[0.0, 0.0, 1.0]])
@@ -56,6 +71,9 @@ class PusherShield:
         self.fractions = torch.tensor(FRACTIONS, dtype=torch.float64)
         self.reach = (self.path[:, 2].abs().max(), self.path[:, 1].abs().max())
         self.margin, self.escape, self.slide = margin, escape, slide
+        # The inflated area's arcs are chords, up to radius * BUFFER_SAG inside the true disc's
+        # reach: the check asks that much more, so the margin holds against the true zone.
+        self.clearance = margin + robot.pusher_radius * BUFFER_SAG
         angles = torch.arange(DIRECTIONS, dtype=torch.float64) * (2 * torch.pi / DIRECTIONS)
         unit = torch.stack([angles.cos(), angles.sin()], dim=-1)
         self.ring = (torch.tensor(RING_FRACTIONS, dtype=torch.float64)[:, None, None]
@@ -66,6 +84,7 @@ class PusherShield:
         # step, position, the setpoints sent since that observation (latest last), velocity
         # estimated at that step
         self.last: tuple[int, np.ndarray, list[np.ndarray], np.ndarray] | None = None
+        self.in_force: np.ndarray | None = None  # the setpoint in force at that observation
         self.corrected = 0  # setpoints changed since the reset
 
     def estimate(self, position: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray]:
@@ -77,11 +96,12 @@ class PusherShield:
         observation (a real-time controller ticking again before the next observation) reuses
         that estimate and holds the setpoint sent last. Which setpoint a robot executed is not
         always the last one sent: a real-time node that sends again (a zone arrived) may do so
-        after the robot's tick. Over one step each setpoint sent for the last observation is
-        tried, and the one whose implied earlier velocity agrees with the velocity estimated
-        then is taken (a wrong one is off by about 10 px/s per px of setpoint). Without a usable
-        earlier observation (a new episode: the simulator resets with the pusher at rest) the
-        pusher is taken at rest, holding its position."""
+        after the robot's tick, and a late setpoint leaves the one in force before running.
+        Over one step each of those is tried, and the one whose implied earlier velocity
+        agrees with the velocity estimated then is taken (a wrong one is off by about 10 px/s
+        per px of setpoint). Without a usable earlier observation (a new episode: the
+        simulator resets with the pusher at rest) the pusher is taken at rest, holding its
+        position."""
         if self.last is None or len(self.last[1]) != len(position):
             return np.zeros_like(position), position
         last_step, last_position, sent, last_velocity = self.last
@@ -91,7 +111,11 @@ class PusherShield:
         if not 0 < gap <= len(self.control_steps):
             return np.zeros_like(position), position
         (p_p, p_v, p_u), (v_p, v_v, v_u) = self.control_steps[gap - 1]
-        executed = np.stack(sent if gap == 1 else sent[-1:])  # (K, B, 2) candidates
+        # (K, B, 2) candidates; over one step also the setpoint in force before, which the
+        # robot kept if everything sent for that observation arrived after its tick.
+        kept = [self.in_force] if self.in_force is not None and \
+            self.in_force.shape == position.shape else []
+        executed = np.stack([*kept, *sent] if gap == 1 else sent[-1:])
         before = (position - p_p * last_position - p_u * executed) / p_v
         best = np.linalg.norm(before - last_velocity, axis=-1).argmin(axis=0)  # (B,)
         rows = np.arange(len(position))
@@ -106,7 +130,7 @@ class PusherShield:
         position, setpoint = np.asarray(position, float), np.asarray(setpoint, float)
         velocity, held = self.estimate(position, step)
         if area is None:
-            self._remember(step, position, setpoint, velocity)
+            self._remember(step, position, setpoint, velocity, held)
             return setpoint
         p, v = torch.from_numpy(position), torch.from_numpy(velocity)
         start, goal = torch.from_numpy(held), torch.from_numpy(setpoint)
@@ -114,41 +138,51 @@ class PusherShield:
         # the path leaves p by at most c_max |u - p| + b_max |v| (p_k - p = c_k (u - p) + b_k v).
         reach = (self.reach[0] * torch.maximum((goal - p).norm(dim=-1), (start - p).norm(dim=-1))
                  + self.reach[1] * v.norm(dim=-1))
-        near = torch.nonzero(area.signed_distance(p.float()) < reach + self.margin).flatten()
+        near = torch.nonzero(area.signed_distance(p.float()) < reach + self.clearance).flatten()
         chosen = goal.clone()
         if len(near):
             chosen[near] = self._choose(area.select_rows(near), p[near], v[near], start[near],
                                         goal[near])
         result = chosen.numpy()
         self.corrected += int((chosen != goal).any(dim=-1).sum())
-        self._remember(step, position, result, velocity)
+        self._remember(step, position, result, velocity, held)
         return result
 
     def _remember(self, step: int, position: np.ndarray, setpoint: np.ndarray,
-                  velocity: np.ndarray) -> None:
+                  velocity: np.ndarray, held: np.ndarray) -> None:
         """The observation and the setpoint sent for it, after those already sent for it."""
-        sent = [setpoint]
         if self.last is not None and self.last[0] == step and \
                 self.last[2][-1].shape == setpoint.shape:
-            sent = [*self.last[2][-(SENT_KEPT - 1):], setpoint]
-        self.last = (step, position, sent, velocity)
+            self.last = (step, position, [*self.last[2][-(SENT_KEPT - 1):], setpoint], velocity)
+        else:  # a new observation
+            self.last, self.in_force = (step, position, [setpoint], velocity), held
 
-    def _safe(self, area: RestrictedArea, p: Tensor, v: Tensor, candidates: Tensor) -> Tensor:
+    def _safe(self, area: RestrictedArea, p: Tensor, v: Tensor, candidates: Tensor,
+              held: Tensor | None = None) -> Tensor:
         """(N, F) whether holding candidate (N, F, 2) keeps a pusher at p moving at v clear of
-        the area: after every physics substep of the horizon, and at the candidate itself."""
+        the area: after every physics substep of the horizon, and at the candidate itself.
+        With `held` (N, 2), the setpoint in force, and `late`, also if the candidate takes
+        over one control step later (it reached the robot after its tick)."""
         a, b, c = self.path.unbind(-1)
-        paths = (a[:, None] * p[:, None, None] + b[:, None] * v[:, None, None]
-                 + c[:, None] * candidates[:, :, None])  # (N, F, H, 2)
+        if held is not None and self.one_step is not None:
+            (p_p, p_v, p_u), (v_p, v_v, v_u) = self.one_step
+            p, v = (torch.stack([p, p_p * p + p_v * v + p_u * held], dim=1),
+                    torch.stack([v, v_p * p + v_v * v + v_u * held], dim=1))  # (N, 2 starts, 2)
+        else:
+            p, v = p[:, None], v[:, None]
+        paths = (a[:, None] * p[:, None, :, None] + b[:, None] * v[:, None, :, None]
+                 + c[:, None] * candidates[:, :, None, None])  # (N, F, starts, H, 2)
+        paths = paths.flatten(2, 3)
         count, n_candidates, horizon, _ = paths.shape
         paths = paths.reshape(count, -1, 2).float()
-        clearance = area.near(paths, self.margin).signed_distance(paths)
-        return (clearance.reshape(count, n_candidates, horizon) >= self.margin).all(dim=-1)
+        clearance = area.near(paths, self.clearance).signed_distance(paths)
+        return (clearance.reshape(count, n_candidates, horizon) >= self.clearance).all(dim=-1)
 
     def _choose(self, area: RestrictedArea, p: Tensor, v: Tensor, start: Tensor,
                 goal: Tensor) -> Tensor:
-        """The largest safe step from `start` towards `goal` for pushers at p moving at v."""
+        """A safe setpoint near `goal` for pushers at p moving at v, `start` in force."""
         chosen = goal.clone()
-        blocked = torch.nonzero(~self._safe(area, p, v, goal[:, None])[:, 0]).flatten()
+        blocked = torch.nonzero(~self._safe(area, p, v, goal[:, None], start)[:, 0]).flatten()
         if len(blocked) == 0:
             return chosen
         area, p, v = area.select_rows(blocked), p[blocked], v[blocked]
@@ -159,18 +193,42 @@ class PusherShield:
             around = goal[:, None] + step[:, None, None] * self.ring[None]
             out = area.project_out(goal.float(), 2 * self.margin).double()[:, None]
             candidates = torch.cat([candidates, out, around], dim=1)
-        safe = self._safe(area, p, v, candidates)
+        safe = self._safe(area, p, v, candidates, start)
+        stuck = ~safe.any(dim=1)
         if self.slide:  # the safe candidate nearest to the wanted setpoint: the minimal change
             distance = (candidates - goal[:, None]).norm(dim=-1)
             pick = torch.where(safe, distance, torch.inf).argmin(dim=1)
+            fallback = candidates[torch.arange(len(blocked)), pick]
+            wanted = (goal - start).norm(dim=-1)
+            stalled = ~stuck & (wanted - (fallback - goal).norm(dim=-1) < STALL_PX) \
+                & (wanted >= 4 * STALL_PX)
+            if stalled.any():
+                follow = self._follow(area, p, v, start, goal, stalled)
+                fallback[stalled] = torch.where(follow.isnan(), fallback[stalled], follow)
         else:  # the largest safe step along the line
-            pick = safe.float().argmax(dim=1)
-        fallback = candidates[torch.arange(len(blocked)), pick]
+            fallback = candidates[torch.arange(len(blocked)), safe.float().argmax(dim=1)]
         # No safe candidate (it started inside, or a zone moved onto it): head for the nearest
         # point `escape` px clear, so a zone still coming does not catch it at once.
-        stuck = ~safe.any(dim=1)
         if stuck.any():  # the area may be batch-aware (row b, zones b): query every row
             escape = area.project_out(p.float(), self.escape).double()
             fallback = torch.where(stuck[:, None], escape, fallback)
         chosen[blocked] = fallback
         return chosen
+
+    def _follow(self, area: RestrictedArea, p: Tensor, v: Tensor, start: Tensor, goal: Tensor,
+                rows: Tensor) -> Tensor:
+        """(S, 2) for the stalled `rows` (bool): the safe point around `start`, at most
+        FOLLOW_PX away, whose direction is nearest the wanted one, the way the pusher moves
+        breaking ties, the farthest of those; NaN where none is safe."""
+        area, p, v, start, goal = area.select_rows(torch.nonzero(rows).flatten()), p[rows], \
+            v[rows], start[rows], goal[rows]
+        step = (goal - start).norm(dim=-1).clamp_max(FOLLOW_PX)
+        candidates = start[:, None] + step[:, None, None] * self.ring[None]
+        safe = self._safe(area, p, v, candidates, start)
+        wanted = torch.nn.functional.normalize(goal - start, dim=-1)
+        moving = torch.nn.functional.normalize(v, dim=-1)  # zero at rest
+        unit = torch.nn.functional.normalize(self.ring, dim=-1)
+        score = (unit @ wanted.T + 0.25 * unit @ moving.T).T + 1e-3 * self.ring.norm(dim=-1)
+        best = torch.where(safe, score, -torch.inf).argmax(dim=1)
+        chosen = candidates[torch.arange(len(best)), best]
+        return torch.where(safe.any(dim=1)[:, None], chosen, torch.nan)

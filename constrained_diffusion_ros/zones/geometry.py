@@ -32,7 +32,8 @@ from torch import Tensor
 from constrained_diffusion_ros.zones.area import Bounds, RestrictedArea
 
 QUAD_SEGS = 16
-"""Segments per quarter circle when inflating: arcs sag at most r * (1 - cos(pi / 64)) ~ 0.1% r."""
+"""Segments per quarter circle when inflating: arcs sag at most r * BUFFER_SAG ~ 0.1% r."""
+BUFFER_SAG = 1.0 - math.cos(math.pi / (4 * QUAD_SEGS))
 _FINE_QUAD_SEGS = 64  # for project_out's inflated area: about 0.01% of the margin too far
 
 

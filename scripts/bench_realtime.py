@@ -17,7 +17,9 @@ the policy run, drop a square zone on the waypoints the plan in force is about t
     the node;
   - setpoints within the pusher radius of the zone after that moment, and steps where the
     pusher's disc overlaps the zone (placed so that it starts outside);
-  - standstills at a zone's edge, as the node counts them (`standstill_steps`, the longest);
+  - standstills at a zone's edge, as the node counts them: with a waypoint to execute (the
+    filter's: `standstill_steps`, the longest) and while waiting for a plan
+    (`standstill_waiting_steps`);
   - the time from publishing a zone to the next plan the client receives;
 then a 1 kHz zone flood (zones in force = last message per id how soon after it ends; the period
 p99 against the same run without a flood), and `trial` under load. "loaded" means one busy
@@ -598,9 +600,11 @@ def run_condition(args: argparse.Namespace, loaded: bool) -> None:
                     "tick_late_p99_ms", "clock_realtime", "executor_realtime",
                     "planning_priority")))
                 print("    standstills at a zone's edge (the node's count: 5+ steps under 0.5 px "
-                      "with a zone within 5 px of the disc): " + ", ".join(
-                          f"{key} {client.status.get(key, '?')}"
-                          for key in ("standstill_steps", "standstill_longest_s")))
+                      "with a zone within 5 px of the disc), with a waypoint to execute: "
+                      + ", ".join(f"{key} {client.status.get(key, '?')}"
+                                  for key in ("standstill_steps", "standstill_longest_s"))
+                      + "; while waiting for a plan: standstill_waiting_steps "
+                      + str(client.status.get("standstill_waiting_steps", "?")))
                 if index == 0 and args.flood_hz > 0:
                     flood(client, args)
             finally:

@@ -298,7 +298,10 @@ class PolicyNode(Node):
         self.pusher_stamp: float | None = None  # its observation's stamp
         self.last_safe_setpoint: np.ndarray | None = None
         self.observations_refused = 0
-        self.standstills = StandstillMeter()  # the pusher parked at a zone's edge
+        # The pusher parked at a zone's edge: with a waypoint to execute (the filter's doing),
+        # and while the last setpoint is held waiting for a plan (planning's).
+        self.standstills, self.standstills_waiting = StandstillMeter(), StandstillMeter()
+        self.waiting_for_plan = False  # the last step had no waypoint
         self.zone_change_time: float | None = None
         self.replan_latency_ms = float("nan")
         self.zone_to_setpoint_ms = float("nan")  # the last safe setpoint sent for a zone
@@ -373,8 +376,10 @@ class PolicyNode(Node):
             observation = self._take_observation(stamp)
             if observation is not None:
                 self.latest_stamp = stamp_msg
+                held_before = self.controller.stats.held_steps
                 self._hold(self.controller.observe(
                     step_of_stamp(stamp_msg, self.robot.control_hz), observation))
+                self.waiting_for_plan = self.controller.stats.held_steps > held_before
             return
         if stamp == self.last_stamp:
             # The simulator re-sends an observation until answered: the answer may have been
@@ -419,6 +424,7 @@ class PolicyNode(Node):
             return None
         if new_episode:
             self.standstills.reset_run()
+            self.standstills_waiting.reset_run()
         else:
             self._measure_standstill(pusher)
         self.latest_pusher, self.pusher_stamp = pusher, stamp
@@ -430,7 +436,10 @@ class PolicyNode(Node):
         clearance = math.inf if area is None else \
             float(area.signed_distance(torch.from_numpy(pusher[None]))[0])
         moved = float(np.linalg.norm(pusher - self.latest_pusher))
-        self.standstills.update(moved, clearance, self.robot.pusher_radius)
+        counting, other = (self.standstills_waiting, self.standstills) if self.waiting_for_plan \
+            else (self.standstills, self.standstills_waiting)
+        counting.update(moved, clearance, self.robot.pusher_radius)
+        other.reset_run()
 
     def _sendable(self, setpoint: np.ndarray) -> np.ndarray:
         """Never a non-finite or out-of-workspace setpoint, nor any while zones leave the
@@ -532,6 +541,7 @@ class PolicyNode(Node):
                   "observations_refused": self.observations_refused,
                   "standstill_steps": self.standstills.steps,
                   "standstill_longest_s": f"{self.standstills.longest / self.robot.control_hz:.1f}",
+                  "standstill_waiting_steps": self.standstills_waiting.steps,
                   "plans": self.chunk_executor.stats.planner_calls,
                   "planning_ms": f"{planning_ms:.1f}",
                   "replan_latency_ms": f"{self.replan_latency_ms:.1f}",

@@ -1,4 +1,5 @@
-"""The shared `main()` body of every node of the package: init, build, spin, shut down quietly.
+"""The shared `main()` body of every node of the package: init, build, spin, shut down quietly;
+and `spin_until`, how a tool or a test waits on the graph.
 
 Part of the ROS interface layer so that the simulator node and the policy-side nodes run alike."""
 
@@ -7,12 +8,13 @@ from __future__ import annotations
 import gc
 import re
 import sys
+import time
 from collections.abc import Callable, Sequence
 
 import rclpy
 from rclpy._rclpy_pybind11 import RCLError, RCLInvalidROSArgsError, UnknownROSArgsError
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import Executor, ExternalShutdownException
 from rclpy.logging import get_logger
 from rclpy.node import Node
 from rclpy.publisher import Publisher
@@ -78,6 +80,34 @@ def log_matches(node: Node, endpoints: Sequence[Publisher | Subscription],
     return node.create_timer(period_s, check)
 
 
+def spin_until(spinner: Executor | Node, condition: Callable[[], bool],
+               timeout_s: float | None = None, *, deadline: float | None = None,
+               period_s: float = 0.02, failed: Callable[[], str | None] | None = None,
+               what: str | None = None) -> bool:
+    """Spins `spinner` (an executor, or a node on rclpy's global executor) `period_s` at a time
+    until `condition()` holds (True), or until `timeout_s` from now or the `time.monotonic()`
+    `deadline` has passed (False; with `what`, RuntimeError "timed out waiting for <what>"
+    instead). `failed`, asked before each spin, names a reason to stop waiting (a node process
+    that exited), raised as RuntimeError: a wait on a dead node fails at once, not at its
+    timeout. Polling, not sleeping, because callbacks run only while the node spins."""
+    if (timeout_s is None) == (deadline is None):
+        raise ValueError("spin_until takes either timeout_s or deadline")
+    end = time.monotonic() + timeout_s if deadline is None else deadline
+    while not condition():
+        failure = failed() if failed is not None else None
+        if failure:
+            raise RuntimeError(failure)
+        if time.monotonic() > end:
+            if what is None:
+                return False
+            raise RuntimeError(f"timed out waiting for {what}")
+        if isinstance(spinner, Node):
+            rclpy.spin_once(spinner, timeout_sec=period_s)
+        else:
+            spinner.spin_once(timeout_sec=period_s)
+    return True
+
+
 def spin_node(factory: Callable[[], Node], name: str, args: list[str] | None = None,
               parameters: Sequence[Param] = (), summary: str = "",
               startup_errors: tuple[type[BaseException], ...] = ()) -> int:
@@ -103,8 +133,8 @@ def spin_node(factory: Callable[[], Node], name: str, args: list[str] | None = N
         rclpy.try_shutdown()
         return 1
     # What start-up built (torch, the model, ROS) stays for good: frozen out of the collector,
-    # whose full passes would otherwise scan it with the interpreter held (200 ms measured in
-    # the policy node, time its control clock cannot send in).
+    # whose full passes would otherwise scan it with the interpreter held: in the policy node,
+    # long pauses in which its control clock cannot send.
     gc.collect()
     gc.freeze()
     try:

@@ -47,23 +47,22 @@ from typing import NamedTuple
 import numpy as np
 import shapely
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from constrained_diffusion_ros.evaluation.launcher import (  # noqa: E402
+from constrained_diffusion_ros.evaluation.launcher import (
     NodeProcesses,
     random_domain_id,
 )
-from constrained_diffusion_ros.paths import default_model_dir  # noqa: E402
-from constrained_diffusion_ros.pusht import PUSHT_ROBOT  # noqa: E402
-from msg_schemas import NAMESPACE, SERVICES, TOPICS, qos_profile  # noqa: E402
-from msg_schemas.conversions import (  # noqa: E402
+from constrained_diffusion_ros.paths import default_model_dir
+from constrained_diffusion_ros.pusht import PUSHT_ROBOT
+from msg_schemas import NAMESPACE, SERVICES, TOPICS, qos_profile
+from msg_schemas.conversions import (
     path_of,
     point_of,
     step_of_stamp,
     zone_message,
 )
-from sim_bridge import AGENT_RADIUS, CONTROL_HZ  # noqa: E402
+from sim_bridge import AGENT_RADIUS, CONTROL_HZ
+
+ROOT = Path(__file__).resolve().parents[1]
 
 FIRST_SEED = 100000
 MAX_ATTEMPTS = 4  # scenes tried per trial asked for, at most
@@ -241,14 +240,10 @@ class Client:
                         shapely.union_all(polygons))
 
     def spin_until(self, condition, timeout: float, what: str) -> None:
-        deadline = time.monotonic() + timeout
-        while not condition():
-            failure = self.children.failed()
-            if failure:
-                raise RuntimeError(failure)
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"timed out waiting for {what}")
-            self.executor.spin_once(timeout_sec=0.005)
+        from msg_schemas.spin import spin_until
+
+        spin_until(self.executor, condition, timeout, period_s=0.005,
+                   failed=self.children.failed, what=what)
 
     def spin_for(self, seconds: float) -> None:
         deadline = time.monotonic() + seconds
@@ -475,7 +470,7 @@ def flooding(domain_id: int, hz: float, vertices: int) -> Iterator[None]:
     if hz <= 0:
         yield
         return
-    environment = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    environment = {**os.environ, "OMP_NUM_THREADS": "1"}
     process = subprocess.Popen([sys.executable, "-c", FLOODER, str(domain_id), str(hz),
                                 str(vertices), str(FLOOD_IDS)], env=environment)
     try:

@@ -7,13 +7,9 @@ rollouts. Actions chase each block so that contacts (the expensive case) happen.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from sim_bridge import PushTBatch, PushTSim
 

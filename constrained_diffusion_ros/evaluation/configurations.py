@@ -36,7 +36,7 @@ def load_evaluated(config_dir: str | Path) -> dict[str, EvaluatedConfiguration]:
     configs = load_configurations(directory / "configurations.yaml")
     path = directory / "evaluation.yaml"
     # Absent: every configuration under its own name. Present, it must be a regular file:
-    # read_yaml refuses a FIFO, a directory or a dangling link in one line (a FIFO was skipped).
+    # read_yaml refuses a FIFO, a directory or a dangling link in one line.
     present = path.exists() or path.is_symlink()
     document = (read_yaml(path) if present else None) or {}
     if not isinstance(document, dict):

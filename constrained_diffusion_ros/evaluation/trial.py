@@ -35,9 +35,9 @@ from msg_schemas import NAMESPACE, SERVICES, TOPICS
 from msg_schemas.conversions import point_of, pose2d_of, step_of_stamp, zones_shown
 from sim_bridge import CONTROL_HZ
 
-# One torch thread for the policy node: a default trial took 55.6 s idle and 62.7 s beside one
-# busy process with 1 thread, 57.1 s and 148 s with 2 (this 2-core machine): the second thread
-# gains nothing idle and fights any other load.
+# One torch thread for the policy node: on a two-core machine a second thread makes an idle
+# trial no faster, and beside any other load it fights that load for the cores, more than
+# doubling the trial's time.
 POLICY_THREADS = 1
 # How long after the last step the trial waits for the bag to hold everything it heard: DDS
 # resends a reliable message its reader missed after the writer's next heartbeat (every 3 s by
@@ -126,6 +126,7 @@ def run_trial(args: argparse.Namespace) -> dict:
     from visualization_msgs.msg import MarkerArray
 
     from msg_schemas import qos_profile
+    from msg_schemas.spin import spin_until
 
     scenarios = load_scenarios(args.scenarios_file)
     scenario = scenarios.get(args.scenario) if args.scenario != "none" else None
@@ -207,14 +208,9 @@ def run_trial(args: argparse.Namespace) -> dict:
                                        configuration=args.configuration,
                                        configurations_file=args.configurations_file, **plug_in)
 
-        def spin_until(condition, what: str) -> None:
-            while not condition():
-                failure = children.failed()
-                if failure:
-                    raise RuntimeError(failure)
-                if time.monotonic() > deadline:
-                    raise RuntimeError(f"timed out waiting for {what}")
-                executor.spin_once(timeout_sec=0.05)
+        def wait_for(condition, what: str) -> None:
+            spin_until(executor, condition, deadline=deadline, period_s=0.05,
+                       failed=children.failed, what=what)
 
         def subscribed(topic: str) -> bool:
             """Every node the contract names as a subscriber of `topic` is in the graph (counted
@@ -234,23 +230,24 @@ def run_trial(args: argparse.Namespace) -> dict:
         def publishers_matched() -> bool:
             """Both sides of discovery have matched (the nodes' logs say so): the recorder the
             publishers the trial's figures come from, and the simulator's and the policy's
-            publishers every subscriber the graph shows. Seen in CI: a recorder that matched the
-            policy 0.2 s before a short trial ended kept none of the first five setpoints, and a
-            bag without the first setpoint (the policy had not matched the recorder yet)."""
+            publishers every subscriber the graph shows. The graph alone is not enough: a
+            recorder that matches a publisher late misses what it sent before (a short trial's
+            first setpoints), and a publisher that has not matched the recorder yet sends the
+            first setpoint past the bag."""
             return (all(matched(recorder_log, topic, "publisher") >= 1 for topic in recorded_first)
                     and all(matched(log, topic, "subscriber") >= node.count_subscribers(
                         TOPICS[topic].name) for log, topic in ((policy_log, "setpoint"),
                                                                (sim_log, "pusher"),
                                                                (sim_log, "block_pose"))))
 
-        # The zones too: seen in CI, a bag without the zone message (the recorder matched the
-        # zone publisher only after its latched history could still reach it).
+        # The zones too: a recorder that matches the zone publisher after its latched history
+        # can still reach it records no zone message.
         recorded_first = ["setpoint", "pusher", "block_pose"]
         if zone_topic is not None:
             recorded_first.append("keepout_mask" if args.keepout_grid else "zones")
 
-        spin_until(discovered, "the nodes to discover each other")
-        spin_until(publishers_matched, "the publishers and the recorder to match")
+        wait_for(discovered, "the nodes to discover each other")
+        wait_for(publishers_matched, "the publishers and the recorder to match")
         if scenario is not None:  # the policy echoes the zones in force as markers, one each
             expected = len(scenario.polygons_at(0))  # (a mask's pieces: at least one)
 
@@ -258,21 +255,22 @@ def run_trial(args: argparse.Namespace) -> dict:
                 shown = zones_in_force[-1] if zones_in_force else 0
                 return shown >= 1 if args.keepout_grid else shown == expected
 
-            spin_until(holds_zones, "the policy to hold the scenario's zones")
+            wait_for(holds_zones, "the policy to hold the scenario's zones")
         future = reset.call_async(Trigger.Request())
-        spin_until(future.done, "the simulator's reset")
+        wait_for(future.done, "the simulator's reset")
         def complete() -> bool:  # topics arrive in no fixed order: wait for every one
             observed = range(args.steps + 1)
             return (all(t in received["pusher"] and t in received["block"] for t in observed)
                     and all(t in received["setpoint"] for t in range(args.steps)))
 
-        spin_until(complete, f"{args.steps} control steps")
+        wait_for(complete, f"{args.steps} control steps")
         results = trial_results(received, scenario, args)
         metadata["results"] = results
         metadata_file.write_text(json.dumps(metadata, indent=2))
 
-        # Seen in CI: a bag without a single message of the policy node's, stopped 2 s after
-        # its start (a reliable writer whose first sample was missed sends it after a heartbeat).
+        # The bag can still lack a topic after the last step: a reliable writer resends a sample
+        # its reader missed only after its next heartbeat, so the nodes stop only once the bag
+        # holds everything the trial heard, or after RECORDING_GRACE_S.
         until = time.monotonic() + RECORDING_GRACE_S
         while ((missing := bag_lacks(output / "bag", heard, received))
                and time.monotonic() < until and not children.failed()):

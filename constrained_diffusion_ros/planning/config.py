@@ -20,8 +20,8 @@ from constrained_diffusion_ros.policy.schedulers import SPACINGS
 MAX_DENOISING_STEPS = 1000
 MAX_CHUNKS = 1024  # candidates and from_scratch
 # YAML: the shipped files are a few kB and their aliases add 119 nodes; these bounds are
-# generous by far, yet a 623-byte alias bomb (nine levels of nine aliases: 387 million nodes,
-# 3.4 GB in 9 s) is refused as soon as its aliases pass the budget.
+# generous by far, yet an alias bomb of a few hundred bytes (nine levels of nine aliases: 387
+# million nodes, gigabytes once expanded) is refused as soon as its aliases pass the budget.
 MAX_YAML_BYTES = 4 << 20
 ALIAS_NODE_BUDGET = 10_000  # nodes that aliases may add to a document, all aliases together
 

@@ -17,9 +17,9 @@ MAX_LEVELS = 6  # U-Net levels at most
 MAX_WIDTH = 4096  # channels per level at most: more is a typo that would allocate gigabytes
 # Upper bounds of the size fields, each far above any PushT policy (the reference: 20
 # observations, 2 actions, horizon 16, kernel 5, 100 training timesteps) yet low enough that a
-# typo or a hostile config.json is refused at once instead of a MemoryError a minute later (a
-# horizon or num_train_timesteps of 10**9 was). Longest horizon of the diffusion-policy papers:
-# 64; DDPM's schedule: 1000 timesteps.
+# typo or a hostile config.json is refused at once instead of a MemoryError a minute later (as
+# a horizon or num_train_timesteps of 10**9 would give). Longest horizon of the diffusion-policy
+# papers: 64; DDPM's schedule: 1000 timesteps.
 SIZE_LIMITS = {
     "obs_dim": 1024, "action_dim": 1024,  # features per observation / action
     "n_obs_steps": 256, "horizon": 256, "n_action_steps": 256,  # steps of a chunk

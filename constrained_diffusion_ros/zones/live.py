@@ -26,8 +26,9 @@ class _Zone:
     stamp: float | None = None  # the message's stamp (None: unstamped)
 
 
-# At these caps a batch of zone messages costs under one control period and a DDIM plan about
-# 0.4 s on 2 cores (scripts/bench_zones.py; README, "What zones cost").
+# The largest caps at which a batch of zone messages costs under one control period and a DDIM
+# plan about half a chunk's execution on a two-core machine; raise them on faster machines after
+# running scripts/bench_zones.py there (docs/results.md, "What zones cost, and the caps").
 DEFAULT_MAX_ZONES = 32
 DEFAULT_MAX_VERTICES = 64
 CLEARED_KEPT = 4096  # (id, stamp) pairs of cleared zones remembered at most

@@ -16,7 +16,7 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 
 from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_domain_id
-from msg_schemas import NAMESPACE, TOPICS, qos_profile
+from msg_schemas import NAMESPACE, TOPICS, qos_profile, spin
 from msg_schemas.conversions import stamp_nanoseconds, stamp_of_step, step_of_stamp
 from sim_bridge import CONTROL_HZ
 
@@ -66,12 +66,7 @@ class Ros:
         self.executor.add_node(self.node)
 
     def spin_until(self, predicate: Callable[[], bool], timeout: float = DISCOVERY_S) -> bool:
-        deadline = time.monotonic() + timeout
-        while not predicate():
-            if time.monotonic() > deadline:
-                return False
-            self.executor.spin_once(timeout_sec=0.02)
-        return True
+        return spin.spin_until(self.executor, predicate, timeout, period_s=0.02)
 
     def spin_for(self, seconds: float) -> None:
         """Keep receiving for a while: only to check that nothing *more* arrives."""

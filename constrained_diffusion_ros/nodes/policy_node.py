@@ -42,17 +42,17 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
+from constrained_diffusion_ros.planning.clock import ControlClock
 from constrained_diffusion_ros.planning.config import load_configurations, safe_yaml
 from constrained_diffusion_ros.planning.executor import ChunkExecutor
 from constrained_diffusion_ros.planning.liveness import StandstillMeter
-from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
-from constrained_diffusion_ros.planning.realtime import (
+from constrained_diffusion_ros.planning.os_scheduling import (
     CLOCK_PRIORITY,
     EXECUTOR_PRIORITY,
-    ControlClock,
-    RealtimeController,
     request_fifo,
 )
+from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
+from constrained_diffusion_ros.planning.realtime import RealtimeController
 from constrained_diffusion_ros.planning.robot import RobotModel
 from constrained_diffusion_ros.policy.device import DEVICES
 from constrained_diffusion_ros.policy.weights import load_policy
@@ -309,7 +309,7 @@ class PolicyNode(Node):
             self._publish_markers()  # viewers see the plug-in check from the start
         if self.mode == "realtime":
             # What start-up built (policy, torch, rclpy) lives as long as the node: out of the
-            # collector's sight, so a full collection no longer holds the GIL for 100s of ms.
+            # collector's sight, so a full collection does not hold the GIL to scan it all.
             gc.collect()
             gc.freeze()
         self.get_logger().info(
@@ -613,9 +613,9 @@ class PolicyNode(Node):
         Realtime: a batch right after another first waits as long as the last one took, so a
         flood gets half the executor thread at most. Kept busy at SCHED_FIFO by a flood, the
         thread can be throttled by the kernel (its real-time budget spent) while it holds the
-        interpreter lock, and the clock's ticks waited up to 85 ms for it (docs/
-        hostile_inputs.md); the wait coalesces the messages meanwhile, so nothing is lost and
-        a zone waits no longer than behind a batch."""
+        interpreter lock, and the clock's ticks then wait for it (see docs/hostile_inputs.md);
+        the wait coalesces the messages meanwhile, so nothing is lost and a zone waits no
+        longer than behind a batch."""
         received = time.monotonic()
         if self.controller is not None and received < self._zones_paced_until:
             time.sleep(self._zones_paced_until - received)  # frees the CPU and the lock

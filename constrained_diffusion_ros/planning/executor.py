@@ -16,8 +16,8 @@ from typing import Protocol
 import numpy as np
 import torch
 
+from constrained_diffusion_ros.planning.action_queue import ActionQueue, committed_prefix
 from constrained_diffusion_ros.planning.planners import ChunkPlanner
-from constrained_diffusion_ros.planning.realtime import ActionQueue, committed_prefix
 from constrained_diffusion_ros.zones.area import RestrictedArea
 
 

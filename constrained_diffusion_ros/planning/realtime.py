@@ -1,158 +1,38 @@
-"""Real-time chunking: waypoints indexed by control step, and a planner that works in the
-background while they execute.
+"""The real-time controller: the live action filter, which plans in the background while the
+chunk in force executes (real-time chunking).
 
-A chunk planned from the observation of step t puts its executed waypoint j (chunk index
-`first_executed + j`) at step t + j, whenever it arrives: installed at a later step, the
-waypoints whose time has passed are skipped (as LeRobot's asynchronous action queue merges
-chunks). While a plan is being made, the waypoints that will execute before it arrives are
-already decided; the next chunk is denoised with them held fixed (`committed_prefix`), so the
-handover does not jump. The policy node runs this with a `PlanningProcess` (workers.py) and a
-`ControlClock` thread; the latency evaluation runs it in lockstep with a chosen delay.
+A chunk planned from the observation of step t puts its executed waypoint j at step t + j,
+whenever it arrives (the action queue, action_queue.py); the next chunk is denoised with the
+waypoints that will execute before it arrives held fixed (`committed_prefix`), so the handover
+does not jump. The plans are made by a worker (plan_jobs.py's `PlanWorker`): the policy node's
+is a `PlanningProcess` (planning_process.py), and its setpoints go out on a `ControlClock`
+thread (clock.py); the latency evaluation runs the same queue in lockstep with a chosen delay
+(executor.py).
 """
 
 from __future__ import annotations
 
-import contextlib
-import logging
-import os
 import threading
-import time
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from constrained_diffusion_ros.planning.action_queue import ActionQueue, committed_prefix
+from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult, PlanWorker, plan_chunk
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
-from constrained_diffusion_ros.planning.workers import (
-    BackgroundPlanner,
-    PlanJob,
-    PlanningProcess,
-    PlanResult,
-    plan_chunk,
-)
-from constrained_diffusion_ros.sampling.hooks import CommittedPrefix, prefix_weights
+from constrained_diffusion_ros.planning.planning_process import PlanningProcess
+from constrained_diffusion_ros.planning.thread_worker import BackgroundPlanner
 from constrained_diffusion_ros.zones.geometry import leaves_no_room
 from constrained_diffusion_ros.zones.live import LiveZones
 
 
-class ActionQueue:
-    """The chunk in force per episode (B rows), as waypoints indexed by control step.
-
-    A row holds the executed part of its chunk and the rest of the horizon after it, so a plan
-    that arrives late still finds waypoints to execute; it is due for a new one once
-    `n_action_steps` of them have executed after the ones skipped at install (the horizon the
-    policy was trained to execute, whatever the delay).
-    """
-
-    def __init__(self, batch: int, n_action_steps: int) -> None:
-        self.n_action_steps = n_action_steps
-        self.waypoints = np.full((batch, 0, 2), np.nan)
-        self.first_step = np.zeros(batch, dtype=np.int64)
-        self.end = np.zeros(batch, dtype=np.int64)  # index after the last one to execute
-        self.planned = np.zeros(batch, dtype=bool)
-        self.installs = np.zeros(batch, dtype=np.int64)  # chunks installed per row: its id
-        self.skipped = 0  # waypoints skipped at install because their time had passed
-
-    def install(self, rows: np.ndarray, waypoints: np.ndarray, first_step: np.ndarray | int,
-                now: int) -> np.ndarray:
-        """Rows `rows` take `waypoints` (R, N, 2), waypoint j for step `first_step + j`; returns
-        how many of them had already passed at step `now` (skipped)."""
-        rows = np.asarray(rows)
-        if waypoints.shape[1] != self.waypoints.shape[1]:
-            grown = np.full((len(self.first_step), waypoints.shape[1], 2), np.nan)
-            keep = min(waypoints.shape[1], self.waypoints.shape[1])
-            grown[:, :keep] = self.waypoints[:, :keep]
-            self.waypoints = grown
-        self.waypoints[rows] = waypoints
-        self.first_step[rows] = first_step
-        self.planned[rows] = True
-        self.installs[rows] += 1
-        skipped = np.clip(now - self.first_step[rows], 0, waypoints.shape[1])
-        self.end[rows] = np.minimum(skipped + self.n_action_steps, waypoints.shape[1])
-        self.skipped += int(skipped.sum())
-        return skipped
-
-    def clear(self, rows: np.ndarray | None = None) -> None:
-        """Forget the chunks of `rows` (all by default): nothing to execute until a plan."""
-        self.planned[slice(None) if rows is None else rows] = False
-
-    def offset(self, step: int) -> np.ndarray:
-        """(B,) index of step `step` in each row's chunk."""
-        return step - self.first_step
-
-    def at(self, step: int) -> np.ndarray:
-        """(B, 2) the waypoints of step `step`; NaN where a row has none (no chunk, or its
-        chunk is used up)."""
-        out = np.full((len(self.first_step), 2), np.nan)
-        index = self.offset(step)
-        ok = self.planned & (index >= 0) & (index < self.waypoints.shape[1])
-        out[ok] = self.waypoints[np.nonzero(ok)[0], index[ok]]
-        return out
-
-    def remaining(self, step: int) -> np.ndarray:
-        """(B,) waypoints still to execute from step `step` on; 0 without a chunk."""
-        left = self.end - self.offset(step)
-        return np.where(self.planned, np.clip(left, 0, self.n_action_steps), 0)
-
-    def upcoming(self, rows: np.ndarray, step: int, count: int) -> np.ndarray:
-        """(R, count, 2) the waypoints of steps step .. step + count - 1; NaN where none."""
-        index = self.offset(step)[rows, None] + np.arange(count)[None]
-        ok = self.planned[rows, None] & (index >= 0) & (index < self.waypoints.shape[1])
-        out = np.full((len(rows), count, 2), np.nan)
-        r, c = np.nonzero(ok)
-        out[r, c] = self.waypoints[np.asarray(rows)[r], index[r, c]]
-        return out
-
-
-def committed_prefix(queue: ActionQueue, rows: np.ndarray, step: int, delay: int, soft: int,
-                     first_executed: int) -> CommittedPrefix | None:
-    """The prefix hook for a chunk planned at step `step` that arrives `delay` steps later.
-
-    Chunk index i lies at step `step - first_executed + i`: indices up to `first_executed +
-    delay` are the waypoints already executed or committed (held exactly); the `soft` after
-    them are drawn toward the chunk in force. Rows with no chunk in force are left free.
-    Returns None when nothing is known (the first plan of an episode).
-    """
-    count = first_executed + delay + soft
-    known = queue.upcoming(rows, step - first_executed, count)
-    weights = np.broadcast_to(prefix_weights(first_executed + delay, soft).numpy(),
-                              known.shape[:2]).copy()
-    missing = np.isnan(known).any(axis=-1)
-    weights[missing] = 0.0
-    if not weights.any():
-        return None
-    known[missing] = 0.0
-    return CommittedPrefix(torch.from_numpy(known), torch.from_numpy(weights))
-
-
-CLOCK_PRIORITY = 50  # SCHED_FIFO priority of the control clock where allowed (ros2_control's)
-EXECUTOR_PRIORITY = 40  # the node's executor thread, which reacts to zones: below the clock
-LATENESS_WINDOW = 100  # ticks over which the clock's lateness is kept (the diagnostics')
-
-
-def request_fifo(priority: int) -> bool:
-    """SCHED_FIFO at `priority` for the calling thread, as ros2_control's controller manager
-    asks for its loop, if the system allows it (root, CAP_SYS_NICE or an rtprio limit): the
-    thread then preempts other processes' work at once. Processes it starts later get normal
-    scheduling back (reset on fork). Whether it was granted."""
-    if priority <= 0 or not hasattr(os, "sched_setscheduler"):
-        return False
-    try:
-        os.sched_setscheduler(threading.get_native_id(),
-                              os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0),
-                              os.sched_param(priority))
-    except OSError:
-        return False
-    return True
-
-
 def warm_up(planner: ConstrainedPlanner) -> None:
     """Runs the zone reaction's computing once on a scratch zone: a new zone is then not the
-    first to pay for lazy imports and first calls (offline the first reaction took 32 ms, the
-    next ones 11), time the node's executor holds the interpreter while the clock waits for it.
-    Leaves the planner as it found it (its shield reset)."""
+    first to pay for lazy imports and first calls, time the node's executor holds the
+    interpreter while the clock waits for it. Leaves the planner as it found it (its shield
+    reset)."""
     robot = planner.robot
     x_min, y_min, x_max, y_max = robot.workspace
     centre, half = np.array([(x_min + x_max) / 2, (y_min + y_max) / 2]), (x_max - x_min) / 8
@@ -165,90 +45,6 @@ def warm_up(planner: ConstrainedPlanner) -> None:
     observation = np.zeros((1, planner.policy_config.obs_dim))
     planner.guard(area, observation, planner.keep_out(area, point), 0)
     planner.reset()
-
-
-class ControlClock:
-    """Threads that call `on_tick` every 1 / rate_hz seconds of the monotonic clock, on
-    absolute deadlines (no drift); a tick missed by more than a period is dropped, not made up
-    in a burst. Threads of their own, not an executor's timer: nothing queued in an executor (a
-    zone batch, an observation, a plan being installed) can hold a tick back, and `on_tick`
-    should only send what is already computed. `shutdown()` stops and joins them.
-
-    On a virtual machine the hypervisor takes a CPU away for milliseconds at a time (steal), and
-    a thread whose timer is on that CPU wakes late whatever its priority. So `threads` threads
-    (default: two, where the process may use two CPUs), each pinned to a CPU of its own, wait for
-    the same deadlines and the first awake sends the tick; the others find it sent. Ticks never
-    overlap: `on_tick` runs under the lock that claims the tick.
-    """
-
-    def __init__(self, rate_hz: float, on_tick: Callable[[], None],
-                 priority: int = CLOCK_PRIORITY, name: str = "control_clock",
-                 threads: int | None = None, window: int = LATENESS_WINDOW) -> None:
-        self.period, self._on_tick, self._priority = 1.0 / rate_hz, on_tick, priority
-        cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
-        count = max(1, threads if threads is not None else min(2, len(cpus)))
-        self.ticks = 0
-        self.missed = 0  # ticks dropped because every thread woke more than a period late
-        self.lateness: deque[float] = deque(maxlen=window)  # s, the latest ticks'
-        self._next_tick = 0  # index of the next tick to send (tick k is due at start + k periods)
-        self._tick_lock = threading.Lock()
-        self._stop = threading.Event()
-        self._granted: list[bool] = []  # per thread: got the real-time priority it asked for
-        self._ready = threading.Semaphore(0)
-        self._start = time.monotonic() + self.period
-        pinned = count > 1 and len(cpus) > 1
-        self._threads = [
-            threading.Thread(target=self._run, args=(cpus[k % len(cpus)] if pinned else None,),
-                             name=f"{name}_{k}", daemon=True) for k in range(count)]
-        for thread in self._threads:
-            thread.start()
-        for _ in self._threads:
-            self._ready.acquire(timeout=5.0)
-
-    @property
-    def realtime(self) -> bool:
-        """Whether every clock thread got the real-time priority it asked for."""
-        return len(self._granted) == len(self._threads) and all(self._granted)
-
-    def late_p99(self) -> float:
-        """s: how late the latest ticks woke, 99th percentile (nan before the first)."""
-        latest = list(self.lateness)  # one C-level copy: the clock thread may be appending
-        return float(np.percentile(latest, 99)) if latest else float("nan")
-
-    def shutdown(self, timeout: float = 5.0) -> None:
-        self._stop.set()
-        for thread in self._threads:
-            thread.join(timeout)
-
-    def _wait(self, seconds: float) -> bool:
-        """Sleep up to `seconds`; True once the clock is shut down."""
-        return self._stop.wait(seconds)
-
-    def _run(self, cpu: int | None) -> None:
-        self._granted.append(request_fifo(self._priority))
-        if cpu is not None:
-            with contextlib.suppress(OSError):  # a CPU taken away since: any will do
-                os.sched_setaffinity(threading.get_native_id(), {cpu})
-        self._ready.release()
-        tick = 0
-        while not self._wait(max(0.0, self._start + tick * self.period - time.monotonic())):
-            with self._tick_lock:
-                if tick < self._next_tick:  # another thread sent it: wait for the next one
-                    tick = self._next_tick
-                    continue
-                late = time.monotonic() - (self._start + tick * self.period)
-                self.lateness.append(late)
-                if late > self.period:
-                    skipped = int(late // self.period)
-                    self.missed += skipped
-                    tick += skipped
-                self._next_tick = tick + 1
-                self.ticks += 1
-                try:
-                    self._on_tick()
-                except Exception:  # a failed send must not stop the clock
-                    logging.getLogger(__name__).exception("control tick failed")
-            tick += 1
 
 
 @dataclass
@@ -304,7 +100,7 @@ class RealtimeController:
         self.stats = ControllerStats()
         self._results: list[PlanResult] = []
         self._results_lock = threading.Lock()
-        self.worker = (BackgroundPlanner(self._plan, self._on_result, noise_seed)
+        self.worker: PlanWorker = (BackgroundPlanner(self._plan, self._on_result, noise_seed)
                        if process_threads is None else
                        PlanningProcess(planner, self._on_result, noise_seed, process_threads,
                                        idle=idle))
@@ -344,8 +140,7 @@ class RealtimeController:
         in force executes until it arrives."""
         warm_up(planner)
         self.planner = planner
-        if isinstance(self.worker, PlanningProcess):
-            self.worker.use(planner)
+        self.worker.use(planner)
         self.generation += 1
         self.replan = None
         if self.step is not None:

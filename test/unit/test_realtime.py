@@ -22,30 +22,22 @@ import torch
 from samples import chunk_of_rows
 from test_executor import CONFIG, Scripted
 
+from constrained_diffusion_ros.planning.action_queue import ActionQueue, committed_prefix
+from constrained_diffusion_ros.planning.clock import ControlClock
 from constrained_diffusion_ros.planning.config import ConstraintConfig
 from constrained_diffusion_ros.planning.executor import ChunkExecutor
-from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
-from constrained_diffusion_ros.planning.realtime import (
-    ActionQueue,
-    ControlClock,
-    RealtimeController,
-    committed_prefix,
-    request_fifo,
-    warm_up,
-)
-from constrained_diffusion_ros.planning.workers import (
+from constrained_diffusion_ros.planning.os_scheduling import (
     STARVED_SHARE,
-    BackgroundPlanner,
     CpuShare,
-    PlanJob,
-    PlanningProcess,
-    PlanResult,
-    _send,
     may_leave_idle,
-    plan_chunk,
+    request_fifo,
     scheduling,
-    serve,
 )
+from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult, plan_chunk
+from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
+from constrained_diffusion_ros.planning.planning_process import PlanningProcess, _send, serve
+from constrained_diffusion_ros.planning.realtime import RealtimeController, warm_up
+from constrained_diffusion_ros.planning.thread_worker import BackgroundPlanner
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.weights import save_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
@@ -493,7 +485,7 @@ def test_the_planning_process_exits_when_the_node_is_killed(make_tiny_policy, tm
         "import sys, time\n"
         "from constrained_diffusion_ros.planning.planners import ConstrainedPlanner\n"
         "from constrained_diffusion_ros.planning.config import ConstraintConfig\n"
-        "from constrained_diffusion_ros.planning.workers import PlanningProcess\n"
+        "from constrained_diffusion_ros.planning.planning_process import PlanningProcess\n"
         "from constrained_diffusion_ros.policy.weights import load_policy\n"
         "from constrained_diffusion_ros.pusht import PUSHT_ROBOT\n"
         f"policy = load_policy({str(model)!r})\n"

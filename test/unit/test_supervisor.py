@@ -17,23 +17,24 @@ import numpy as np
 import pytest
 import torch
 
-from constrained_diffusion_ros.planning import workers
+from constrained_diffusion_ros.planning import planning_process as workers
 from constrained_diffusion_ros.planning.config import ConstraintConfig
-from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
-from constrained_diffusion_ros.planning.realtime import RealtimeController
-from constrained_diffusion_ros.planning.workers import (
-    RESTART_DELAY_MAX_S,
-    RESTART_DELAY_S,
-    RESTART_LIMIT,
-    BackgroundPlanner,
+from constrained_diffusion_ros.planning.os_scheduling import (
     CpuShare,
-    PlanJob,
-    PlanningProcess,
-    PlanResult,
     may_leave_idle,
     process_sample,
     scheduling,
 )
+from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult
+from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
+from constrained_diffusion_ros.planning.planning_process import (
+    RESTART_DELAY_MAX_S,
+    RESTART_DELAY_S,
+    RESTART_LIMIT,
+    PlanningProcess,
+)
+from constrained_diffusion_ros.planning.realtime import RealtimeController
+from constrained_diffusion_ros.planning.thread_worker import BackgroundPlanner
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones import LiveZones

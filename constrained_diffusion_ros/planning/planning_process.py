@@ -1,17 +1,12 @@
-"""Background planners: where the next chunk is denoised while the current one executes.
+"""The planning process: plans in a child process of its own, supervised (`PlanWorker`).
 
-`BackgroundPlanner` plans in a thread of the node's process; `PlanningProcess` in a child
-process. Denoising runs hundreds of torch calls with Python between them, all under the
-interpreter's lock, which the control clock and the zone callbacks need too; a child process has
-an interpreter of its own, so the node's threads never wait behind planning, and a planner that
+Denoising runs hundreds of torch calls with Python between them, all under the interpreter's
+lock, which the control clock and the zone callbacks need too; a child process has an
+interpreter of its own, so the node's threads never wait behind planning, and a planner that
 crashes does not take the node with it, as LeRobot's asynchronous inference keeps the policy in
-a server of its own. (On the 2-core VM of the README the two gave the same live figures within
-its noise.) Both take jobs the
-same way: `submit` replaces a job not yet started (only the newest request matters), a result
-goes to `on_result` with its job, `reseed` applies before the next job, `shutdown` stops and
-joins (like tf2_ros's listener, each owns its thread). For the node's diagnostics both keep
-`error` (the last fault), `errors` (faults so far), `failed` (a fault since the last plan that
-arrived: nothing may be planning) and `restarts` (children started again after dying).
+a server of its own. The child is a plain interpreter started on a command line that names this
+module (`child_command`) and runs `serve`; the node and the child speak over a socket pair in
+the messages of plan_jobs.py (`Request`, `Reply`).
 """
 
 from __future__ import annotations
@@ -29,21 +24,32 @@ import termios
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from multiprocessing.connection import Connection
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from constrained_diffusion_ros.planning.os_scheduling import (
+    CpuShare,
+    may_leave_idle,
+    process_sample,
+    scheduling,
+)
+from constrained_diffusion_ros.planning.plan_jobs import (
+    PlanJob,
+    PlanResult,
+    Reply,
+    Request,
+    plan_chunk,
+)
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
-from constrained_diffusion_ros.sampling.hooks import CommittedPrefix
 from constrained_diffusion_ros.sampling.sampler import Interrupted
 from constrained_diffusion_ros.zones.area import RestrictedArea
 
 LOGGER = logging.getLogger(__name__)
 
-STARVED_SHARE = 0.25  # of a core, while planning: below it, idle priority starves the planner
 WATCH_PERIOD_S = 0.5  # how often the node looks at what the planning process gets
 IDLE_RETRY_S = 60.0  # at normal scheduling after starving, before idle priority is tried again
 IDLE_RETRY_MAX_S = 960.0  # the wait doubles at each try, up to this
@@ -52,167 +58,16 @@ RESTART_DELAY_S = 0.5  # before the first restart; doubled for each next one in 
 RESTART_DELAY_MAX_S = 8.0
 
 
-@dataclass
-class PlanJob:
-    """One request to the background planner: everything it needs, copied when asked."""
-
-    generation: int
-    step: int  # the control step of the newest observation in `observations`
-    observations: torch.Tensor  # (1, n_obs_steps, obs_dim)
-    zones: RestrictedArea | None  # the zones in force when asked
-    zone_version: int
-    prefix: CommittedPrefix | None
-
-
-@dataclass
-class PlanResult:
-    job: PlanJob
-    chunk: np.ndarray  # (horizon, 2)
-    seconds: float
-
-
-def plan_chunk(planner: ConstrainedPlanner, job: PlanJob, generator: torch.Generator,
-               interrupt: Callable[[], bool] = lambda: False) -> np.ndarray:
-    """(horizon - first_executed, 2) the executed part of a chunk planned for `job` and the
-    rest of the horizon after it; raises `Interrupted` once `interrupt()` is true."""
-    with planner.sampler.interruptible(interrupt):
-        chunk = planner.plan(job.observations, job.zones, None, generator, job.prefix)
-    return chunk[0, planner.policy_config.first_executed:].numpy().astype(float)
-
-
-class BackgroundPlanner:
-    """A worker thread that plans one chunk at a time, off the control thread.
-
-    `submit` replaces any job not yet started (only the newest request matters), and with
-    `cancel` stops the one in flight before its next denoising step; a result is
-    offered to `on_result` with its job, whose generation the owner compares with its own to
-    drop plans that a zone or configuration change made stale. The worker draws from its own
-    random generator and runs at a lower CPU priority than the process's other threads, so the
-    control clock is never kept waiting by planning. Owns its thread like tf2_ros's listener:
-    `shutdown()` stops and joins it.
-    """
-
-    def __init__(self, plan: Callable[[PlanJob, torch.Generator, Callable[[], bool]],
-                                      np.ndarray],
-                 on_result: Callable[[PlanResult], None], noise_seed: int = 0,
-                 niceness: int = 5, name: str = "background_planner") -> None:
-        self._plan, self._on_result, self._niceness = plan, on_result, niceness
-        self.priority = f"nice {niceness}"  # how the worker thread is scheduled
-        self.generator = torch.Generator().manual_seed(noise_seed)
-        self._job: PlanJob | None = None
-        self._seed: int | None = None  # to apply before the next job
-        self._busy = False
-        self._stopping = False
-        self._wake = threading.Condition()
-        self._cancel = threading.Event()  # the plan in flight is no longer wanted
-        self.error: BaseException | None = None  # the last fault
-        self.errors = 0  # faults so far
-        self.failed = False  # a fault since the last plan offered
-        self.restarts = 0  # never: a fault of one plan does not end the thread
-        self.cancelled = 0  # plans stopped in flight
-        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
-        self._thread.start()
-
-    @property
-    def busy(self) -> bool:
-        """A job is waiting or being planned."""
-        with self._wake:
-            return self._busy or self._job is not None
-
-    def submit(self, job: PlanJob, cancel: bool = False) -> None:
-        with self._wake:
-            self._job = job
-            if cancel and self._busy:
-                self._cancel.set()
-            self._wake.notify()
-
-    def reseed(self, noise_seed: int) -> None:
-        """A new episode: the same noise as a fresh node, from the next job on. The plan in
-        flight and any job waiting (the last episode's, worthless now) are dropped; the plan
-        draws from the generator until it stops, so the seed waits for the next job."""
-        with self._wake:
-            self._seed, self._job = noise_seed, None  # a job waiting is the last episode's too
-            if self._busy:
-                self._cancel.set()
-
-    def shutdown(self, timeout: float = 5.0) -> None:
-        with self._wake:
-            self._stopping = True
-            self._wake.notify()
-        self._thread.join(timeout)
-
-    def _run(self) -> None:
-        if self._niceness and hasattr(os, "setpriority"):
-            with contextlib.suppress(OSError):  # Linux: a thread is a process to setpriority
-                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), self._niceness)
-        while True:
-            with self._wake:
-                while self._job is None and not self._stopping:
-                    self._wake.wait()
-                if self._stopping:
-                    return
-                job, self._job, self._busy = self._job, None, True
-                self._cancel.clear()
-                if self._seed is not None:
-                    self.generator.manual_seed(self._seed)
-                    self._seed = None
-            try:
-                began = time.perf_counter()
-                chunk = self._plan(job, self.generator, self._cancel.is_set)
-                self.failed = False  # before the owner hears of it: planning works again
-                self._on_result(PlanResult(job, chunk, time.perf_counter() - began))
-            except Interrupted:
-                self.cancelled += 1
-            except Exception as error:  # reported by the owner; the worker keeps serving
-                self.error, self.errors, self.failed = error, self.errors + 1, True
-                LOGGER.exception("planning failed")
-            finally:
-                with self._wake:
-                    self._busy = False
-
-
-def _message(kind: str, payload: object) -> bytes:
+def _message(kind: Request | Reply, payload: object) -> bytes:
     """(kind, pickled payload): the kind always reads back, even where the payload cannot (a
-    class the other side cannot import), so every job gets its reply."""
+    class the other side cannot import), so every job gets its reply. The kind goes as a plain
+    string."""
     data = pickle.dumps(payload, protocol=pickle.HIGHEST_PROTOCOL)
-    return pickle.dumps((kind, data), protocol=pickle.HIGHEST_PROTOCOL)
+    return pickle.dumps((str(kind), data), protocol=pickle.HIGHEST_PROTOCOL)
 
 
-def _send(connection: Connection, kind: str, payload: object) -> None:
+def _send(connection: Connection, kind: Request | Reply, payload: object) -> None:
     connection.send_bytes(_message(kind, payload))
-
-
-def may_leave_idle(niceness: int) -> bool:
-    """Whether a task of this process, its nice value raised by `niceness`, may go back from
-    SCHED_IDLE to normal scheduling (Linux allows it with CAP_SYS_NICE, or within RLIMIT_NICE;
-    root in a container often has neither): tried on a thread of its own, which then ends. The
-    child inherits the same rights. Without them going idle would be one way."""
-    if not hasattr(os, "SCHED_IDLE") or not Path("/proc/self/stat").exists():
-        return False
-    allowed: list[bool] = []
-
-    def probe() -> None:
-        thread = threading.get_native_id()
-        try:
-            os.setpriority(os.PRIO_PROCESS, thread,
-                           os.getpriority(os.PRIO_PROCESS, thread) + niceness)
-            os.sched_setscheduler(thread, os.SCHED_IDLE, os.sched_param(0))
-            os.sched_setscheduler(thread, os.SCHED_OTHER, os.sched_param(0))
-            allowed.append(True)
-        except OSError:
-            allowed.append(False)
-
-    prober = threading.Thread(target=probe, name="scheduling_probe")
-    prober.start()
-    prober.join()
-    return allowed == [True]
-
-
-def scheduling(pid: int = 0) -> str:
-    """How a process (0: this one) is scheduled: "idle" (SCHED_IDLE) or "nice <n>"."""
-    if hasattr(os, "SCHED_IDLE") and os.sched_getscheduler(pid) == os.SCHED_IDLE:
-        return "idle"
-    return f"nice {os.getpriority(os.PRIO_PROCESS, pid)}"
 
 
 def serve(descriptor: int, threads: int, niceness: int, idle: bool = False) -> None:
@@ -223,7 +78,7 @@ def serve(descriptor: int, threads: int, niceness: int, idle: bool = False) -> N
         os.nice(niceness)  # kept if it goes back from idle to normal scheduling
         if idle:  # before torch starts threads: they inherit it
             os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-    _send(connection, "scheduling", (scheduling(), 0.0))  # what it got, not what was asked
+    _send(connection, Reply.SCHEDULING, (scheduling(), 0.0))  # what it got, not what was asked
     torch.set_num_threads(threads)
     policy, planner, zones = None, None, None
     generator = torch.Generator()
@@ -232,30 +87,31 @@ def serve(descriptor: int, threads: int, niceness: int, idle: bool = False) -> N
             kind, data = pickle.loads(connection.recv_bytes())
         except (EOFError, OSError):
             return
-        if kind == "stop":
+        if kind == Request.STOP:
             return
         began = time.perf_counter()
         try:  # a fault is reported to the node; the child keeps serving
             payload = pickle.loads(data)
-            if kind == "policy":
+            if kind == Request.POLICY:
                 policy = payload
-            elif kind == "planner":
+            elif kind == Request.PLANNER:
                 planner = ConstrainedPlanner(policy, *payload)
-            elif kind == "seed":
+            elif kind == Request.SEED:
                 generator.manual_seed(payload)
-            elif kind == "job":
+            elif kind == Request.JOB:
                 job, same_zones = payload
                 job = replace(job, zones=zones) if same_zones else job
                 zones = job.zones
                 # Any message while it plans makes the plan worthless (the node sends a job
-                # only to an idle child): "cancel", a new seed or planner, "stop".
-                _send(connection, "chunk", (plan_chunk(planner, job, generator, connection.poll),
-                                            time.perf_counter() - began))
-            # "cancel": the plan it stopped is answered already
+                # only to an idle child): a cancel, a new seed or planner, a stop.
+                chunk = plan_chunk(planner, job, generator, connection.poll)
+                _send(connection, Reply.CHUNK, (chunk, time.perf_counter() - began))
+            # Request.CANCEL: the plan it stopped is answered already
         except Interrupted:
-            _send(connection, "cancelled", (None, time.perf_counter() - began))
+            _send(connection, Reply.CANCELLED, (None, time.perf_counter() - began))
         except Exception as error:
-            reply = "job_error" if kind == "job" else "error"  # only a job's reply ends it
+            # Only a job's reply ends it.
+            reply = Reply.JOB_ERROR if kind == Request.JOB else Reply.ERROR
             _send(connection, reply, (f"{type(error).__name__}: {error}",
                                       time.perf_counter() - began))
 
@@ -274,50 +130,6 @@ def child_command(descriptor: int, threads: int, niceness: int, idle: bool) -> l
     code = (f"from {__name__} import serve; "
             f"serve({descriptor}, {threads}, {niceness}, {idle})")
     return [sys.executable, "-c", code]
-
-
-class CpuShare:
-    """The share of a core a process got while it worked on one job, over `period` s or more
-    (its CPU time against the wall clock's); windows that span two jobs, or time without one,
-    are not judged: between jobs a planner rightly uses nothing. Nor is a window in which the
-    process was seen stopped (SIGSTOP, a debugger): it got nothing because it asked for
-    nothing, and the window starts again once it runs."""
-
-    def __init__(self, period: float) -> None:
-        self.period = period
-        self._since: tuple[float, float, object] | None = None  # (wall s, CPU s, job)
-
-    def share(self, now: float, cpu: float | None, job: object | None,
-              stopped: bool = False) -> float | None:
-        """Fed a sample (wall s, CPU s, the job in flight or None, whether the process is
-        stopped); the share since the last sample of the same job at least `period` ago, with
-        no stopped sample between, else None."""
-        since = self._since
-        if job is None or cpu is None or stopped:
-            self._since = None
-        elif since is None or since[2] is not job:
-            self._since = (now, cpu, job)
-        elif now - since[0] >= self.period:
-            self._since = (now, cpu, job)
-            return (cpu - since[1]) / (now - since[0])
-        return None
-
-    def starved(self, now: float, cpu: float | None, job: object | None,
-                stopped: bool = False) -> float | None:
-        """`share`, when it is under `STARVED_SHARE` (a planner starved); else None."""
-        share = self.share(now, cpu, job, stopped)
-        return share if share is not None and share < STARVED_SHARE else None
-
-
-def process_sample(pid: int) -> tuple[float | None, bool]:
-    """(CPU s a process has used, all its threads; whether it is stopped): (None, False) if
-    /proc cannot tell."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        cpu = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime
-    except (OSError, IndexError, ValueError):
-        return None, False
-    return cpu, fields[0] in ("T", "t")  # stopped by a signal, or by a tracer
 
 
 class PlanningProcess:
@@ -365,7 +177,7 @@ class PlanningProcess:
         self._idle_retry = IDLE_RETRY_S
         # What every child is given before its first job: the weights pickled once (a restart
         # then costs the node no interpreter time), the planner and the seed in use.
-        self._weights = _message("policy", planner.policy)
+        self._weights = _message(Request.POLICY, planner.policy)
         self._planner_args = (planner.config, planner.robot)
         self._seed = noise_seed
         package_root = str(Path(__file__).resolve().parents[2])
@@ -412,14 +224,14 @@ class PlanningProcess:
                 return
             self._pending = job  # for the child to come, if none has what it needs
             if cancel and self._in_flight is not None:  # under the lock: it reaches the child
-                self._tell_locked("cancel", None)  # before the pending job can
+                self._tell_locked(Request.CANCEL, None)  # before the pending job can
 
     def use(self, planner: ConstrainedPlanner) -> None:
         """Plan with another configuration (of the same policy) from the next job on; a few
         hundred bytes, so the caller never waits for the child to finish a plan."""
         with self._lock:
             self._planner_args = (planner.config, planner.robot)
-            self._tell_locked("planner", self._planner_args)
+            self._tell_locked(Request.PLANNER, self._planner_args)
 
     def reseed(self, noise_seed: int) -> None:
         """A new episode: the same noise as a fresh node from the next job on (like any
@@ -427,9 +239,9 @@ class PlanningProcess:
         started again mid-episode starts from this seed again."""
         with self._lock:
             self._seed, self._pending = noise_seed, None
-            self._tell_locked("seed", noise_seed)
+            self._tell_locked(Request.SEED, noise_seed)
 
-    def _tell_locked(self, kind: str, payload: object) -> None:
+    def _tell_locked(self, kind: Request, payload: object) -> None:
         """Send to the child if one is ready; else the next child gets it (the caller holds
         the lock)."""
         if self._connection is None:
@@ -437,7 +249,7 @@ class PlanningProcess:
         try:
             _send(self._connection, kind, payload)
         except OSError as error:
-            self._lost_locked(f"cannot send {kind!r} to the planning process: {error}")
+            self._lost_locked(f"cannot send {str(kind)!r} to the planning process: {error}")
 
     def _lost_locked(self, message: str) -> None:
         """A send failed: the child is gone, or the stream is cut mid-message. It is killed to
@@ -454,7 +266,7 @@ class PlanningProcess:
             process, connection, self._connection = self._process, self._connection, None
             if connection is not None:
                 with contextlib.suppress(OSError, ValueError):
-                    _send(connection, "stop", None)
+                    _send(connection, Request.STOP, None)
         self._stopped.set()
         try:
             process.wait(timeout)
@@ -470,7 +282,7 @@ class PlanningProcess:
         for as usual); one that cannot be sent dies with the child."""
         same = job.zones is not None and job.zones is self._sent_zones
         try:
-            message = _message("job", (replace(job, zones=None) if same else job, same))
+            message = _message(Request.JOB, (replace(job, zones=None) if same else job, same))
         except (pickle.PicklingError, TypeError, AttributeError) as error:
             self._fail(f"cannot send a plan to the planning process: {type(error).__name__}: "
                        f"{error}")
@@ -562,8 +374,8 @@ class PlanningProcess:
             with self._lock:
                 if self._stopping:
                     return False
-                _send(connection, "planner", self._planner_args)
-                _send(connection, "seed", self._seed)
+                _send(connection, Request.PLANNER, self._planner_args)
+                _send(connection, Request.SEED, self._seed)
                 self._connection, self._sent_zones = connection, None
                 if self._pending is not None:
                     job, self._pending = self._pending, None
@@ -609,18 +421,18 @@ class PlanningProcess:
                 with contextlib.suppress(OSError):
                     self._process.kill()
                 return
-            if kind == "scheduling":
+            if kind == Reply.SCHEDULING:
                 self.priority = payload
                 continue
-            if kind == "chunk":
+            if kind == Reply.CHUNK:
                 self._in_a_row, self.failed = 0, False  # before the owner hears of it
                 if not self._stopping:
                     self._offer(PlanResult(self._in_flight, np.asarray(payload), seconds))
-            elif kind == "cancelled":
+            elif kind == Reply.CANCELLED:
                 self.cancelled += 1
             else:
                 self._fail(payload)
-                if kind == "error":
+                if kind == Reply.ERROR:
                     continue  # a configuration or seed that failed: no job ended
             with self._lock:  # not busy until the result is handed over
                 self._in_flight = None

@@ -199,8 +199,14 @@ class PusherShield:
             out = area.project_out(goal.float(), 2 * self.margin).double()[:, None]
             candidates = torch.cat([candidates, out, around], dim=1)
             distance = (candidates - goal[:, None]).norm(dim=-1)
-            pick = self._first_safe(area, p, v, start, candidates,
-                                    distance.argsort(dim=1, stable=True))
+            order = distance.argsort(dim=1, stable=True)
+            pick = self._first_safe(area, p, v, start, candidates, order)
+            if (pick < 0).any() and self.one_step is not None:
+                # Nothing is safe if it takes over a step late (a zone came onto the setpoint
+                # in force): the best that is safe on time, rather than an unchecked escape.
+                again = torch.nonzero(pick < 0).flatten()
+                pick[again] = self._first_safe(area.select_rows(again), p[again], v[again],
+                                               None, candidates[again], order[again])
             stuck = pick < 0
             fallback = candidates[rows, pick.clamp_min(0)]
             wanted = (goal - start).norm(dim=-1)
@@ -221,11 +227,12 @@ class PusherShield:
         chosen[blocked] = fallback
         return chosen
 
-    def _first_safe(self, area: RestrictedArea, p: Tensor, v: Tensor, start: Tensor,
+    def _first_safe(self, area: RestrictedArea, p: Tensor, v: Tensor, start: Tensor | None,
                     candidates: Tensor, order: Tensor) -> Tensor:
         """(N,) per row, the index of the first safe candidate (N, F, 2) in `order` (N, F), or
-        -1. Checked CHUNK candidates at a time, best first, rows that found one dropping out:
-        the same answer as checking all, at a fraction of the cost where a good one is safe."""
+        -1 (`start`: the setpoints in force, for the late check; None: on time only). Checked
+        CHUNK candidates at a time, best first, rows that found one dropping out: the same
+        answer as checking all, at a fraction of the cost where a good one is safe."""
         found = torch.full((len(order),), -1, dtype=torch.long)
         pending = torch.arange(len(order))
         for low in range(0, order.shape[1], CHUNK):
@@ -236,14 +243,14 @@ class PusherShield:
             chunk = candidates[pending[:, None], index]  # (P, C, 2)
             # Every SPARSE-th point first: a candidate refused there is refused; the rest,
             # moved to the front in their order, get the whole check.
-            passed = self._safe(rows, *some, chunk, start[pending], self.sparse_path)
+            held = None if start is None else start[pending]
+            passed = self._safe(rows, *some, chunk, held, self.sparse_path)
             survivors = passed.sum(dim=1).max()
             if survivors == 0:
                 continue
             front = torch.argsort((~passed).to(torch.uint8), dim=1, stable=True)[:, :survivors]
             lines = torch.arange(len(pending))[:, None]
-            safe = self._safe(rows, *some, chunk[lines, front], start[pending]) \
-                & passed[lines, front]
+            safe = self._safe(rows, *some, chunk[lines, front], held) & passed[lines, front]
             hit = safe.any(dim=1)
             first = front[lines[:, 0], safe.float().argmax(dim=1)]
             found[pending[hit]] = index[hit, first[hit]]

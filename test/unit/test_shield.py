@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from hypothesis import assume, given, settings
+from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 
 from constrained_diffusion_ros.planning.config import ConstraintConfig
@@ -318,3 +318,29 @@ def test_a_setpoint_the_shield_lets_through_is_safe_even_if_it_takes_over_a_tick
     for start, speed in ((p, v), (p1, v1)):
         path = a[:, None] * start + b[:, None] * speed + c[:, None] * out
         assert INFLATED.signed_distance(path).min() >= shield.margin - 1e-3
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.tuples(st.floats(0, 512), st.floats(0, 512)), near_the_grown_zone(),
+       near_the_grown_zone(), st.tuples(st.floats(-400, 400), st.floats(-400, 400)))
+# Found by a search: the shield that escaped unchecked took the disc 0.5, 1.7 and 2.1 px in.
+@example((177.17022208051952, 293.35208082000275), (253.73397304827068, 225.48060180978126),
+         (13.241322959513766, 128.13050142768722), (365.04877345635424, 53.18342354777448))
+@example((180.35389262517444, 403.0600801494856), (249.51186925426234, 291.42086738576387),
+         (22.71099511541301, 440.78334756767134), (320.0770307574021, -20.778910155036854))
+@example((183.0095199356445, 361.5622067645844), (186.73018461835613, 356.7629408432589),
+         (69.12032155338376, 142.66127980604108), (237.67602980982693, 7.8486507413117295))
+def test_when_nothing_is_safe_a_step_late_the_shield_still_keeps_the_on_time_path_clear(
+        position: tuple, held: tuple, goal: tuple, velocity: tuple) -> None:
+    """A zone that comes onto the setpoint in force can leave no setpoint safe if it takes
+    over a step late. Where one is safe on time (the wanted one, here), the shield returns one
+    that is, never its unchecked escape."""
+    shield = PusherShield(PUSHT_ROBOT)
+    p, v = torch.tensor([position], dtype=torch.float64), torch.tensor([velocity],
+                                                                       dtype=torch.float64)
+    assume(bool(shield._safe(INFLATED, p, v, torch.tensor([[goal]], dtype=torch.float64))[0, 0]))
+    shield.last = (0, np.array([position]), [np.array([held])], np.array([velocity]))
+    out = torch.from_numpy(shield(INFLATED, np.array([position]), np.array([goal]), 0))
+    a, b, c = shield.path.unbind(-1)
+    path = a[:, None] * p + b[:, None] * v + c[:, None] * out
+    assert INFLATED.signed_distance(path).min() >= shield.margin - 1e-3

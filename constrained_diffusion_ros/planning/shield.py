@@ -51,6 +51,7 @@ STALL_PX = 1.0
 FOLLOW_PX = 40.0
 CHUNK = 16  # candidates checked at once, best first, until one is safe
 SPARSE = 6  # a quick refusal first looks at every SPARSE-th substep of a path
+FEW = 2  # candidates that passed it, checked whole at once, in order
 
 
 class PusherShield:
@@ -239,22 +240,32 @@ class PusherShield:
             if len(pending) == 0:
                 break
             index = order[pending, low:low + CHUNK]  # (P, C)
-            rows, some = area.select_rows(pending), (p[pending], v[pending])
+            subset, some = area.select_rows(pending), (p[pending], v[pending])
             chunk = candidates[pending[:, None], index]  # (P, C, 2)
             # Every SPARSE-th point first: a candidate refused there is refused; the rest,
             # moved to the front in their order, get the whole check.
             held = None if start is None else start[pending]
-            passed = self._safe(rows, *some, chunk, held, self.sparse_path)
+            passed = self._safe(subset, *some, chunk, held, self.sparse_path)
             survivors = passed.sum(dim=1).max()
             if survivors == 0:
                 continue
             front = torch.argsort((~passed).to(torch.uint8), dim=1, stable=True)[:, :survivors]
-            lines = torch.arange(len(pending))[:, None]
-            safe = self._safe(rows, *some, chunk[lines, front], held) & passed[lines, front]
-            hit = safe.any(dim=1)
-            first = front[lines[:, 0], safe.float().argmax(dim=1)]
-            found[pending[hit]] = index[hit, first[hit]]
-            pending = pending[~hit]
+            # The survivors, in order, a few at a time: the first of them is mostly safe.
+            open_rows = torch.arange(len(pending))
+            for at in range(0, int(survivors), FEW):
+                lines = open_rows[:, None]
+                tried = front[open_rows, at:at + FEW]  # (O, FEW) positions in the chunk
+                safe = self._safe(subset.select_rows(open_rows), some[0][open_rows],
+                                  some[1][open_rows], chunk[lines, tried],
+                                  None if held is None else held[open_rows]) \
+                    & passed[lines, tried]
+                hit = safe.any(dim=1)
+                first = tried[torch.arange(len(open_rows)), safe.float().argmax(dim=1)]
+                found[pending[open_rows[hit]]] = index[open_rows[hit], first[hit]]
+                open_rows = open_rows[~hit]
+                if len(open_rows) == 0:
+                    break
+            pending = pending[found[pending] < 0]
         return found
 
     def _follow(self, area: RestrictedArea, p: Tensor, v: Tensor, start: Tensor, goal: Tensor,

@@ -11,6 +11,7 @@ import struct
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -469,6 +470,10 @@ def test_a_starved_planner_that_may_not_leave_idle_priority_says_so(
         def refuse(*_) -> None:
             raise PermissionError(1, "Operation not permitted")
 
+        # The child's own report of its scheduling first, so it cannot overwrite the verdict.
+        deadline = time.monotonic() + 30
+        while worker.priority == "starting" and time.monotonic() < deadline:
+            time.sleep(0.01)
         monkeypatch.setattr(os, "sched_setscheduler", refuse)
         worker._leave_idle(0.02)
         assert worker.priority == "idle (starved: could not leave it)"

@@ -303,6 +303,23 @@ def zone_in_path(plan: np.ndarray, held: np.ndarray, pusher: np.ndarray, moved: 
     return None
 
 
+def print_timeline(client: Client, shape: shapely.Polygon, published: float, seed: int,
+                   first_setpoint: int, first_pusher: int) -> None:
+    """An overlap trial's events around the zone, in ms from its publishing, as the client got
+    them: the pusher (step, position, disc depth in the zone) and the setpoints (distance of
+    the point to the zone less the pusher radius: negative is inside the grown zone)."""
+    events = [(t, f"pusher step {step:4d} ({p[0]:6.1f}, {p[1]:6.1f}) depth "
+                  f"{AGENT_RADIUS - shape.distance(shapely.Point(*p)):6.2f} px")
+              for t, step, p in client.pushers[max(0, first_pusher):]]
+    events += [(s.received, f"  setpoint ({s.point[0]:6.1f}, {s.point[1]:6.1f}) clear "
+                            f"{shape.distance(shapely.Point(*s.point)) - AGENT_RADIUS:6.2f} px")
+               for s in client.setpoints[max(0, first_setpoint - 3):]]
+    print(f"\n  overlap in scene {seed}; zone {list(shape.exterior.coords)[:4]} published at 0:")
+    for t, text in sorted(events):
+        if -400 <= 1000 * (t - published) <= 1500:
+            print(f"    {1000 * (t - published):7.1f} ms  {text}")
+
+
 def respects(shape: shapely.Polygon, point: np.ndarray) -> bool:
     return shape.distance(shapely.Point(*point)) >= AGENT_RADIUS - TOLERANCE and \
         not shape.contains(shapely.Point(*point))
@@ -377,6 +394,8 @@ def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
               for _, _, p in client.pushers[n_pushers:]]
     result.overlap_steps += sum(depth > 0 for depth in depths)
     result.overlap_px = max([result.overlap_px, *depths])
+    if max(depths, default=0.0) > 0:
+        print_timeline(client, shape, published, seed, n_setpoints, n_pushers - 3)
     settled = max(published + 0.3, (first or published) + 1.0 / args.rate_hz)
     for start, stop in ((begin + 0.5, published), (settled, time.monotonic())):
         received, sent = periods_between(client, start, stop)

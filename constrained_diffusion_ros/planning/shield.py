@@ -10,12 +10,15 @@ horizon, and at the setpoint itself, where the pusher comes to rest); else it ta
 candidate nearest to it (`slide`, the default): the minimal change, as a control-barrier-function
 filter makes it, so where the straight step is blocked the motion along the zone's boundary is
 kept and the pusher slides around a small zone instead of parking in front of it. The
-candidates are the steps along the blocked line, points around the wanted setpoint and that
-setpoint moved just out of the grown zone. Where even the nearest safe one brings the pusher
+candidates are the steps along the blocked line, points around the wanted setpoint, that
+setpoint moved just out of the grown zone, and braking points (where the pusher is, and back
+along its velocity). Where even the nearest safe one brings the pusher
 no nearer (a zone squarely across its way, where the minimal change is to stay), it follows
 the zone's boundary: the safe point around it heading most nearly where it is sent. A
 real-time node's setpoint may reach the robot after its tick, so the one in force runs a step
-longer: a candidate must be safe taking over now or one step later (`late`). With
+longer: a candidate must be safe taking over now or one step later (`late`), after a step of
+any setpoint that may be in force then (a node that answers one observation again, as plans
+or zones arrive, cannot know which of its answers the robot's tick met). With
 `slide=False` it takes the largest safe step along the line instead, as the filter before
 did (it stops the pusher where the line grazes a zone).
 The last accepted setpoint was itself checked from the previous state and is a candidate, so a
@@ -49,6 +52,10 @@ DIRECTIONS = 16
 # toward the wanted setpoint, ties going the way it already moves.
 STALL_PX = 1.0
 FOLLOW_PX = 40.0
+# Braking: the pusher's position, now and after a step late, and points back along its velocity
+# by these times (s), where it comes to rest soonest: a zone dropped in its way can leave no
+# setpoint nearer the wanted one safe.
+BRAKE_S = (0.0, 0.1, 0.2)
 CHUNK = 16  # candidates checked at once, best first, until one is safe
 SPARSE = 6  # a quick refusal first looks at every SPARSE-th substep of a path
 FEW = 2  # candidates that passed it, checked whole at once, in order
@@ -92,7 +99,8 @@ class PusherShield:
         self.corrected = 0  # setpoints changed since the reset
 
     def estimate(self, position: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray]:
-        """(velocity, setpoint in force) at the observation of control step `step`.
+        """(velocity (B, 2), setpoints that may be in force (K, B, 2), newest last) at the
+        observation of control step `step`.
 
         The velocity comes from the last two observed positions and the setpoint held between
         them, over the actual number of control steps between them (the PD law is linear: per
@@ -103,17 +111,19 @@ class PusherShield:
         after the robot's tick, and a late setpoint leaves the one in force before running.
         Over one step each of those is tried, and the one whose implied earlier velocity
         agrees with the velocity estimated then is taken (a wrong one is off by about 10 px/s
-        per px of setpoint). Without a usable earlier observation (a new episode: the
-        simulator resets with the pusher at rest) the pusher is taken at rest, holding its
-        position."""
+        per px of setpoint). In force from a new observation on is the setpoint sent last for
+        the one before; on a second call for the same observation, whichever of those sent
+        since reached the robot before its tick: the one in force then, or any sent for this
+        observation. Without a usable earlier observation (a new episode: the simulator resets
+        with the pusher at rest) the pusher is taken at rest, holding its position."""
         if self.last is None or len(self.last[1]) != len(position):
-            return np.zeros_like(position), position
+            return np.zeros_like(position), position[None]
         last_step, last_position, sent, last_velocity = self.last
         gap = step - last_step
         if gap == 0:
-            return last_velocity, sent[-1]
+            return last_velocity, distinct([self.in_force, *sent])
         if not 0 < gap <= len(self.control_steps):
-            return np.zeros_like(position), position
+            return np.zeros_like(position), position[None]
         (p_p, p_v, p_u), (v_p, v_v, v_u) = self.control_steps[gap - 1]
         # (K, B, 2) candidates; over one step also the setpoint in force before, which the
         # robot kept if everything sent for that observation arrived after its tick.
@@ -124,7 +134,7 @@ class PusherShield:
         best = np.linalg.norm(before - last_velocity, axis=-1).argmin(axis=0)  # (B,)
         rows = np.arange(len(position))
         before, executed = before[best, rows], executed[best, rows]
-        return v_p * last_position + v_v * before + v_u * executed, sent[-1]
+        return v_p * last_position + v_v * before + v_u * executed, sent[-1][None]
 
     def __call__(self, area: RestrictedArea | None, position: np.ndarray, setpoint: np.ndarray,
                  step: int) -> np.ndarray:
@@ -134,13 +144,15 @@ class PusherShield:
         position, setpoint = np.asarray(position, float), np.asarray(setpoint, float)
         velocity, held = self.estimate(position, step)
         if area is None:
-            self._remember(step, position, setpoint, velocity, held)
+            self._remember(step, position, setpoint, velocity, held[-1])
             return setpoint
         p, v = torch.from_numpy(position), torch.from_numpy(velocity)
-        start, goal = torch.from_numpy(held), torch.from_numpy(setpoint)
+        # (B, K, 2) the setpoints that may be in force, newest last
+        start, goal = torch.from_numpy(held).transpose(0, 1), torch.from_numpy(setpoint)
         # Only pushers that could reach the area within the horizon need their paths checked:
         # the path leaves p by at most c_max |u - p| + b_max |v| (p_k - p = c_k (u - p) + b_k v).
-        reach = (self.reach[0] * torch.maximum((goal - p).norm(dim=-1), (start - p).norm(dim=-1))
+        farthest = (start - p[:, None]).norm(dim=-1).amax(dim=1)
+        reach = (self.reach[0] * torch.maximum((goal - p).norm(dim=-1), farthest)
                  + self.reach[1] * v.norm(dim=-1))
         near = torch.nonzero(area.signed_distance(p.float()) < reach + self.clearance).flatten()
         chosen = goal.clone()
@@ -149,7 +161,7 @@ class PusherShield:
                                         goal[near])
         result = chosen.numpy()
         self.corrected += int((chosen != goal).any(dim=-1).sum())
-        self._remember(step, position, result, velocity, held)
+        self._remember(step, position, result, velocity, held[-1])
         return result
 
     def _remember(self, step: int, position: np.ndarray, setpoint: np.ndarray,
@@ -167,12 +179,17 @@ class PusherShield:
         the area: after every physics substep of the horizon, and at the candidate itself
         (or at the points of `path`, a subset of them: a quick test that can only refuse).
         With `held` (N, 2), the setpoint in force, and `late`, also if the candidate takes
-        over one control step later (it reached the robot after its tick)."""
+        over one control step later (it reached the robot after its tick), with each of the
+        setpoints in `held` (N, K, 2) that may be in force meanwhile."""
         a, b, c = (self.path if path is None else path).unbind(-1)
         if held is not None and self.one_step is not None:
+            if held.dim() == 2:
+                held = held[:, None]
             (p_p, p_v, p_u), (v_p, v_v, v_u) = self.one_step
-            p, v = (torch.stack([p, p_p * p + p_v * v + p_u * held], dim=1),
-                    torch.stack([v, v_p * p + v_v * v + v_u * held], dim=1))  # (N, 2 starts, 2)
+            late_p = p_p * p[:, None] + p_v * v[:, None] + p_u * held
+            late_v = v_p * p[:, None] + v_v * v[:, None] + v_u * held
+            p, v = (torch.cat([p[:, None], late_p], dim=1),
+                    torch.cat([v[:, None], late_v], dim=1))  # (N, 1 + K starts, 2)
         else:
             p, v = p[:, None], v[:, None]
         paths = (a[:, None] * p[:, None, :, None] + b[:, None] * v[:, None, :, None]
@@ -183,25 +200,27 @@ class PusherShield:
         clearance = area.near(paths, self.clearance).signed_distance(paths)
         return (clearance.reshape(count, n_candidates, horizon) >= self.clearance).all(dim=-1)
 
-    def _choose(self, area: RestrictedArea, p: Tensor, v: Tensor, start: Tensor,
+    def _choose(self, area: RestrictedArea, p: Tensor, v: Tensor, held: Tensor,
                 goal: Tensor) -> Tensor:
-        """A safe setpoint near `goal` for pushers at p moving at v, `start` in force."""
+        """A safe setpoint near `goal` for pushers at p moving at v, one of `held` (N, K, 2)
+        in force, the newest last."""
         chosen = goal.clone()
-        blocked = torch.nonzero(~self._safe(area, p, v, goal[:, None], start)[:, 0]).flatten()
+        blocked = torch.nonzero(~self._safe(area, p, v, goal[:, None], held)[:, 0]).flatten()
         if len(blocked) == 0:
             return chosen
         area, p, v = area.select_rows(blocked), p[blocked], v[blocked]
-        start, goal = start[blocked], goal[blocked]
+        held, goal = held[blocked], goal[blocked]
+        start = held[:, -1]
         rows = torch.arange(len(blocked))
         candidates = start[:, None] + self.fractions[None, :, None] * (goal - start)[:, None]
         if self.slide:  # the safe candidate nearest to the wanted setpoint: the minimal change
             step = (goal - start).norm(dim=-1).clamp_min(1.0)
             around = goal[:, None] + step[:, None, None] * self.ring[None]
             out = area.project_out(goal.float(), 2 * self.margin).double()[:, None]
-            candidates = torch.cat([candidates, out, around], dim=1)
+            candidates = torch.cat([candidates, out, around, self._brakes(p, v, start)], dim=1)
             distance = (candidates - goal[:, None]).norm(dim=-1)
             order = distance.argsort(dim=1, stable=True)
-            pick = self._first_safe(area, p, v, start, candidates, order)
+            pick = self._first_safe(area, p, v, held, candidates, order)
             if (pick < 0).any() and self.one_step is not None:
                 # Nothing is safe if it takes over a step late (a zone came onto the setpoint
                 # in force): the best that is safe on time, rather than an unchecked escape.
@@ -214,10 +233,10 @@ class PusherShield:
             stalled = ~stuck & (wanted - distance[rows, pick.clamp_min(0)] < STALL_PX) \
                 & (wanted >= 4 * STALL_PX)
             if stalled.any():
-                follow = self._follow(area, p, v, start, goal, stalled)
+                follow = self._follow(area, p, v, held, goal, stalled)
                 fallback[stalled] = torch.where(follow.isnan(), fallback[stalled], follow)
         else:  # the largest safe step along the line
-            safe = self._safe(area, p, v, candidates, start)
+            safe = self._safe(area, p, v, candidates, held)
             stuck = ~safe.any(dim=1)
             fallback = candidates[rows, safe.float().argmax(dim=1)]
         # No safe candidate (it started inside, or a zone moved onto it): head for the nearest
@@ -228,10 +247,22 @@ class PusherShield:
         chosen[blocked] = fallback
         return chosen
 
-    def _first_safe(self, area: RestrictedArea, p: Tensor, v: Tensor, start: Tensor | None,
+    def _brakes(self, p: Tensor, v: Tensor, start: Tensor) -> Tensor:
+        """(N, 2 len(BRAKE_S), 2) braking setpoints, from the state now and from the state a
+        step late holding `start`."""
+        brake = torch.tensor(BRAKE_S, dtype=torch.float64)[None, :, None]
+        states = [(p, v)]
+        if self.one_step is not None:
+            (p_p, p_v, p_u), (v_p, v_v, v_u) = self.one_step
+            states.append((p_p * p + p_v * v + p_u * start, v_p * p + v_v * v + v_u * start))
+        return torch.cat([position[:, None] - brake * velocity[:, None]
+                          for position, velocity in states], dim=1)
+
+    def _first_safe(self, area: RestrictedArea, p: Tensor, v: Tensor, held: Tensor | None,
                     candidates: Tensor, order: Tensor) -> Tensor:
         """(N,) per row, the index of the first safe candidate (N, F, 2) in `order` (N, F), or
-        -1 (`start`: the setpoints in force, for the late check; None: on time only). Checked
+        -1 (`held` (N, K, 2): the setpoints that may be in force, for the late check; None: on
+        time only). Checked
         CHUNK candidates at a time, best first, rows that found one dropping out: the same
         answer as checking all, at a fraction of the cost where a good one is safe."""
         found = torch.full((len(order),), -1, dtype=torch.long)
@@ -244,8 +275,8 @@ class PusherShield:
             chunk = candidates[pending[:, None], index]  # (P, C, 2)
             # Every SPARSE-th point first: a candidate refused there is refused; the rest,
             # moved to the front in their order, get the whole check.
-            held = None if start is None else start[pending]
-            passed = self._safe(subset, *some, chunk, held, self.sparse_path)
+            in_force = None if held is None else held[pending]
+            passed = self._safe(subset, *some, chunk, in_force, self.sparse_path)
             survivors = passed.sum(dim=1).max()
             if survivors == 0:
                 continue
@@ -257,7 +288,7 @@ class PusherShield:
                 tried = front[open_rows, at:at + FEW]  # (O, FEW) positions in the chunk
                 safe = self._safe(subset.select_rows(open_rows), some[0][open_rows],
                                   some[1][open_rows], chunk[lines, tried],
-                                  None if held is None else held[open_rows]) \
+                                  None if in_force is None else in_force[open_rows]) \
                     & passed[lines, tried]
                 hit = safe.any(dim=1)
                 first = tried[torch.arange(len(open_rows)), safe.float().argmax(dim=1)]
@@ -268,21 +299,33 @@ class PusherShield:
             pending = pending[found[pending] < 0]
         return found
 
-    def _follow(self, area: RestrictedArea, p: Tensor, v: Tensor, start: Tensor, goal: Tensor,
+    def _follow(self, area: RestrictedArea, p: Tensor, v: Tensor, held: Tensor, goal: Tensor,
                 rows: Tensor) -> Tensor:
-        """(S, 2) for the stalled `rows` (bool): the safe point around `start`, at most
+        """(S, 2) for the stalled `rows` (bool): the safe point around the newest of `held`
+        (N, K, 2), at most
         FOLLOW_PX away, whose direction is nearest the wanted one, the way the pusher moves
         breaking ties, the farthest of those; NaN where none is safe."""
         selected = torch.nonzero(rows).flatten()
-        area, p, v, start, goal = area.select_rows(selected), p[rows], v[rows], start[rows], \
+        area, p, v, held, goal = area.select_rows(selected), p[rows], v[rows], held[rows], \
             goal[rows]
+        start = held[:, -1]
         step = (goal - start).norm(dim=-1).clamp_max(FOLLOW_PX)
         candidates = start[:, None] + step[:, None, None] * self.ring[None]
         wanted = torch.nn.functional.normalize(goal - start, dim=-1)
         moving = torch.nn.functional.normalize(v, dim=-1)  # zero at rest
         unit = torch.nn.functional.normalize(self.ring, dim=-1)
         score = (unit @ wanted.T + 0.25 * unit @ moving.T).T + 1e-3 * self.ring.norm(dim=-1)
-        best = self._first_safe(area, p, v, start, candidates,
+        best = self._first_safe(area, p, v, held, candidates,
                                 score.argsort(dim=1, descending=True, stable=True))
         chosen = candidates[torch.arange(len(best)), best.clamp_min(0)]
         return torch.where((best >= 0)[:, None], chosen, torch.nan)
+
+
+def distinct(setpoints: list[np.ndarray]) -> np.ndarray:
+    """(K, B, 2) the (B, 2) arrays of `setpoints` without repeats, in order of their last
+    appearance (the newest last)."""
+    kept: list[np.ndarray] = []
+    for setpoint in reversed(setpoints):
+        if setpoint is not None and not any(np.array_equal(setpoint, k) for k in kept):
+            kept.append(setpoint)
+    return np.stack(kept[::-1])

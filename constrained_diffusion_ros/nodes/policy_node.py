@@ -9,38 +9,30 @@ at once and a safe setpoint published before the next tick. The clock is a threa
 (`ControlClock`) that only sends the setpoint already computed, so no callback or computation
 delays it.
 
-Zones come in as id-keyed polygons, taken in batches as fast as they come and coalesced to the
-last message per id; a malformed one, or one over the caps, is refused with a warning while the
-zones in force stay in force. Counters of both are in the node's diagnostics (`/diagnostics`).
+Zones come in through a `ZoneIngest` (zone_ingest.py), which owns the zone topics, keep-out
+masks, the clear service and expiry; its counters are in the node's diagnostics (`/diagnostics`).
 """
 
 from __future__ import annotations
 
 import gc
-import json
 import math
-import os
 import pickle
 import sys
 import threading
 import time
-from collections import OrderedDict
-from pathlib import Path
 
 import numpy as np
 import torch
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import PointStamped, PolygonInstanceStamped, PolygonStamped
-from nav_msgs.msg import OccupancyGrid
+from geometry_msgs.msg import PointStamped, PolygonStamped
 from nav_msgs.msg import Path as PathMsg
 from rcl_interfaces.msg import SetParametersResult
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy
 from std_msgs.msg import Header
-from std_srvs.srv import Trigger
-from visualization_msgs.msg import MarkerArray
 
+from constrained_diffusion_ros.nodes.zone_ingest import ZoneIngest
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.planning.clock import ControlClock
 from constrained_diffusion_ros.planning.config import load_configurations, safe_yaml
@@ -59,21 +51,10 @@ from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones.area import Bounds, RestrictedArea
 from constrained_diffusion_ros.zones.geometry import leaves_no_room
-from constrained_diffusion_ros.zones.grid import (
-    DEFAULT_THRESHOLD,
-    BuiltMask,
-    MaskBuilder,
-    MaskCaps,
-    build_mask,
-)
-from constrained_diffusion_ros.zones.live import (
-    DEFAULT_MAX_VERTICES,
-    DEFAULT_MAX_ZONES,
-    BatchOutcome,
-    LiveZones,
-)
+from constrained_diffusion_ros.zones.grid import DEFAULT_THRESHOLD, MaskCaps
+from constrained_diffusion_ros.zones.live import DEFAULT_MAX_VERTICES, DEFAULT_MAX_ZONES, LiveZones
 from constrained_diffusion_ros.zones.plugins import load_area
-from msg_schemas import FRAME_ID, NAMESPACE, SERVICES, TOPICS, qos_profile
+from msg_schemas import NAMESPACE, TOPICS, qos_profile
 from msg_schemas.conversions import (
     path_message,
     point_message,
@@ -81,7 +62,6 @@ from msg_schemas.conversions import (
     polygon_of,
     stamp_seconds,
     step_of_stamp,
-    zone_markers,
 )
 from msg_schemas.parameters import Param, declare
 from msg_schemas.spin import log_matches, spin_node
@@ -90,13 +70,11 @@ from sim_bridge.scene import observation as pusht_observation
 
 MODES = ("lockstep", "realtime")
 ROBOT_FIELDS = ("pusher_radius", "kp", "kv", "control_hz", "physics_hz")  # and workspace
-ZONE_BATCH_MAX = 10_000  # zone messages taken in one callback at most
 PENDING_HALVES = 64  # observation halves (keypoints or pusher) kept waiting for their other half
-MARKER_NAMESPACE = "zones"  # zone markers: marker namespace <node namespace>/zones, id = zone id
 # Their rise since the last report sets the diagnostic level.
 HEALTH_COUNTERS = ("violations", "unsound_setpoints", "zones_refused", "masks_refused",
                    "observations_refused", "held_steps", "planning_errors")
-STATUS_PERIOD_S = 0.5  # realtime: status this often (zone markers: at most once per tick)
+STATUS_PERIOD_S = 0.5  # realtime: status this often
 
 PARAMETERS = (
     Param("model", str(default_model_dir()), "policy directory (config.json + "
@@ -220,15 +198,6 @@ class PolicyNode(Node):
                                workspace=self.robot.workspace)
         if self.mode == "realtime" and values["planning_process"]:
             _check_picklable(self.zones.fixed, values["restricted_area"])
-        # $ROS_HOME/constrained_diffusion_ros/<node>.cleared: the (id, stamp) of cleared zones,
-        # so their replays stay gone after a restart (exact messages: any clock, any publisher).
-        ros_home = Path(os.environ.get("ROS_HOME") or Path.home() / ".ros")
-        self.clear_file = ros_home / "constrained_diffusion_ros" / (
-            self.get_fully_qualified_name().strip("/").replace("/", "__") + ".cleared")
-        self.zones.cleared = self._remembered_clears()
-        self.zone_counts = {"zone_messages": 0, "zones_applied": 0, "zones_refused": 0,
-                            "zones_stale": 0, "zone_batches": 0, "masks_applied": 0,
-                            "masks_refused": 0}
         self.noise_seed = values["noise_seed"]
         self.generator = torch.Generator().manual_seed(self.noise_seed)
         self.controller: RealtimeController | None = None
@@ -237,38 +206,20 @@ class PolicyNode(Node):
 
         self.setpoint_pub = self._publisher("setpoint", PointStamped)
         self.plan_pub = self._publisher("plan", PathMsg)
-        self.marker_pub = self._publisher("zone_markers", MarkerArray)
         self.status_pub = self._publisher("diagnostics", DiagnosticArray)
         log_matches(self, [self.setpoint_pub])  # who gets the first setpoint
         self._health_counts: dict[str, int] = {}
         # Zones first: when a zone and an observation are ready together, the zone is taken first.
-        # From any publisher: a volatile subscription matches every one, a transient-local one
-        # also gets a latched publisher's history when this node (re)starts; a message both
-        # deliver is taken once.
-        latched = qos_profile(TOPICS["zones"])
-        volatile = qos_profile(TOPICS["zones"])
-        volatile.durability = DurabilityPolicy.VOLATILE
-        self.zone_subs = [self.create_subscription(PolygonInstanceStamped, TOPICS["zones"].name,
-                                                   self._on_zone, profile)
-                          for profile in (volatile, latched)]
-        self._zone_messages_seen: OrderedDict[tuple, None] = OrderedDict()
-        self._zones_paced_until = 0.0  # realtime: no zone batch before then (`_on_zone`)
-        self._subscribe("keepout_mask", OccupancyGrid, self._on_keepout_mask)
-        self.keepout_ids: list[str] = []
-        self.mask_caps = MaskCaps(pieces=values["max_mask_pieces"],
-                                  vertices=values["max_mask_vertices"])
-        self.mask_builder: MaskBuilder | None = None
-        if self.mode == "realtime":  # masks built off the thread that answers zones
-            self._mask_ready = self.create_guard_condition(self._on_mask_ready)
-            self._built_mask: BuiltMask | None = None
-            self.mask_builder = MaskBuilder(self._on_mask_built, self.mask_caps,
-                                            self.robot.workspace)
+        self.zone_ingest = ZoneIngest(
+            self, self.zones, self.robot.workspace,
+            MaskCaps(pieces=values["max_mask_pieces"], vertices=values["max_mask_vertices"]),
+            self._zones_changed, realtime=self.mode == "realtime",
+            marker_period_s=1.0 / self.rate_hz)
         self._subscribe("keypoints", PolygonStamped, self._on_keypoints)
         self._subscribe("pusher", PointStamped, self._on_pusher)
-        self.create_service(Trigger, SERVICES["clear_zones"].name, self._on_clear)
-        self.create_timer(0.2, self._expire_zones)
-        self._markers_due = False
-        self._held: PointStamped | None = None  # realtime: what the clock sends
+        # The last setpoint message: what the clock sends on each tick (realtime), what a
+        # repeated observation gets again (lockstep).
+        self._in_force: PointStamped | None = None
         self._send_lock = threading.Lock()  # a setpoint replaced is never sent after it
         if self.mode == "realtime":
             wake = self.create_guard_condition(self._on_plan_ready)
@@ -281,7 +232,6 @@ class PolicyNode(Node):
                 self.get_logger().warning(
                     "control clock without real-time priority (not allowed here: raise "
                     "rtprio in /etc/security/limits.conf); ticks may be late on a busy machine")
-            self.create_timer(1.0 / self.rate_hz, self._on_markers_timer)
             self.create_timer(STATUS_PERIOD_S, self._on_status_timer)
         self.executor_priority = values["executor_priority"]
         self.executor_realtime: bool | None = None  # asked for on the executor's own thread
@@ -290,7 +240,6 @@ class PolicyNode(Node):
         self.pushers: dict[float, np.ndarray] = {}
         self.last_stamp = -1.0
         self.latest_stamp = None  # realtime: the newest observation's stamp
-        self.last_setpoint: PointStamped | None = None
         self.violations = 0
         self.unsound_setpoints = 0  # non-finite or outside the workspace: the pusher held
         self.no_free_space = False  # the zones cover the whole workspace
@@ -305,8 +254,6 @@ class PolicyNode(Node):
         self.zone_change_time: float | None = None
         self.replan_latency_ms = float("nan")
         self.zone_to_setpoint_ms = float("nan")  # the last safe setpoint sent for a zone
-        if self.zones.fixed is not None:
-            self._publish_markers()  # viewers see the plug-in check from the start
         if self.mode == "realtime":
             # What start-up built (policy, torch, rclpy) lives as long as the node: out of the
             # collector's sight, so a full collection does not hold the GIL to scan it all.
@@ -317,8 +264,7 @@ class PolicyNode(Node):
             f"{self.config.name!r}")
 
     def destroy_node(self) -> None:
-        if self.mask_builder is not None:
-            self.mask_builder.shutdown()
+        self.zone_ingest.shutdown()
         if self.controller is not None:
             self.clock.shutdown()
             self.controller.shutdown()
@@ -376,16 +322,16 @@ class PolicyNode(Node):
             observation = self._take_observation(stamp)
             if observation is not None:
                 self.latest_stamp = stamp_msg
-                held_before = self.controller.stats.held_steps
-                self._hold(self.controller.observe(
-                    step_of_stamp(stamp_msg, self.robot.control_hz), observation))
-                self.waiting_for_plan = self.controller.stats.held_steps > held_before
+                self._send(self.controller.observe(
+                    step_of_stamp(stamp_msg, self.robot.control_hz), observation),
+                    publish=False)
+                self.waiting_for_plan = self.controller.waiting
             return
         if stamp == self.last_stamp:
             # The simulator re-sends an observation until answered: the answer may have been
             # lost to a subscriber not yet matched, so send it again (no new plan, no noise).
-            if self.last_setpoint is not None:
-                self.setpoint_pub.publish(self.last_setpoint)
+            if self._in_force is not None:
+                self.setpoint_pub.publish(self._in_force)
             return
         observation = self._take_observation(stamp)
         if stamp < self.last_stamp or stamp == 0.0:  # the simulator was reset: a new episode
@@ -398,7 +344,7 @@ class PolicyNode(Node):
         started = time.perf_counter()
         setpoint = self.chunk_executor.act(observation[None].astype(np.float32), step)[0]
         planning_ms = 1000 * (time.perf_counter() - started)
-        self._publish_setpoint(setpoint, stamp_msg)
+        self._send(setpoint, stamp_msg)
         if self.chunk_executor.last_plan is not None:
             self._after_plan(self.chunk_executor.last_plan.chunks[0])
         self._publish_status(planning_ms)
@@ -463,47 +409,46 @@ class PolicyNode(Node):
         """Lockstep: the simulator waits for an answer to every observation; a refused one gets
         the last safe setpoint (none before the first)."""
         if self.last_safe_setpoint is not None:
-            self._publish_setpoint(self.last_safe_setpoint, stamp_msg)
+            self._send(self.last_safe_setpoint, stamp_msg)
 
     def _on_tick(self) -> None:
         """Realtime, on the clock's thread: exactly one setpoint per tick, the one computed
         last; nothing to wait on but the short lock around sending."""
         with self._send_lock:
-            if self._held is None:
+            if self._in_force is None:
                 return
             try:
-                self.setpoint_pub.publish(self._held)
+                self.setpoint_pub.publish(self._in_force)
             except RCLError:  # shutting down: the context went away under the clock
                 if self.context.ok():
                     raise
 
-    def _hold(self, setpoint: np.ndarray | None, send_now: bool = False) -> float | None:
-        """Realtime: `setpoint` is what the clock sends from now on (sent at once if asked);
-        when it was sent (time.monotonic()), or None if it was not."""
-        if setpoint is None or self.latest_stamp is None:
+    def _send(self, setpoint: np.ndarray | None, stamp=None, publish: bool = True
+              ) -> float | None:
+        """Every setpoint goes out here: made sound (`_sendable`), stamped with its
+        observation's stamp (exact nanoseconds: lockstep matches it; realtime: the newest
+        observation's by default), kept as the one in force and published now if `publish`
+        (realtime: else the clock sends it on its next tick). Returns when it was published
+        (time.monotonic()), or None."""
+        stamp = self.latest_stamp if stamp is None else stamp
+        if setpoint is None or stamp is None:
             return None
         setpoint = self._sendable(setpoint)
-        message = point_message(setpoint, self.latest_stamp)
+        message = point_message(setpoint, stamp)
         sent = None
-        with self._send_lock:
-            self._held = message
-            if send_now:
+        with self._send_lock:  # a setpoint replaced is never sent after it
+            self._in_force = message
+            if publish:
                 self.setpoint_pub.publish(message)
                 sent = time.monotonic()
         self._count_violation(setpoint)
         return sent
 
-    def _on_markers_timer(self) -> None:
-        if self._markers_due:  # viewers see zone changes at most once per tick
-            self._markers_due = False
-            self._publish_markers()
-
     def _on_plan_ready(self) -> None:
         before = self.controller.stats.plans_installed
-        self._hold(self.controller.install_results())
+        self._send(self.controller.install_results(), publish=False)
         if self.controller.stats.plans_installed != before:
-            chunk = self.controller.queue.waypoints[0]
-            self._after_plan(chunk)
+            self._after_plan(self.controller.chunk)
 
     def _on_status_timer(self) -> None:
         if self.executor_realtime is None:
@@ -512,14 +457,6 @@ class PolicyNode(Node):
             # before, keeps normal scheduling).
             self.executor_realtime = request_fifo(self.executor_priority)
         self._publish_status(self.controller.stats.last_plan_ms)
-
-    def _publish_setpoint(self, setpoint: np.ndarray, stamp_msg) -> None:
-        """Stamped with the observation's own stamp (exact nanoseconds): lockstep matches it."""
-        setpoint = self._sendable(setpoint)
-        msg = point_message(setpoint, stamp_msg)
-        self.setpoint_pub.publish(msg)
-        self.last_setpoint = msg
-        self._count_violation(setpoint)
 
     def _count_violation(self, setpoint: np.ndarray) -> None:
         if self._inside_zone(setpoint):
@@ -546,23 +483,14 @@ class PolicyNode(Node):
                   "planning_ms": f"{planning_ms:.1f}",
                   "replan_latency_ms": f"{self.replan_latency_ms:.1f}",
                   "zone_to_setpoint_ms": f"{self.zone_to_setpoint_ms:.1f}",
-                  "zones": len(self.zones), **self.zone_counts}
+                  "zones": len(self.zones), **self.zone_ingest.counts}
         if self.controller is not None:
-            stats = self.controller.stats
-            values.update(plans=stats.plans_installed, plans_dropped=stats.plans_dropped,
-                          plans_cancelled=self.controller.worker.cancelled,
-                          waypoints_skipped=self.controller.queue.skipped,
-                          held_steps=stats.held_steps, zone_reactions=stats.zone_reactions,
-                          lead=self.controller.lead, ticks=self.clock.ticks,
+            values.update(self.controller.status(), ticks=self.clock.ticks,
                           ticks_missed=self.clock.missed,
                           tick_late_p99_ms=f"{1000 * self.clock.late_p99():.1f}",
                           clock_realtime=self.clock.realtime,
-                          executor_realtime=self.executor_realtime,
-                          planning_priority=self.controller.worker.priority,
-                          planning_errors=self.controller.worker.errors,
-                          planning_failed=self.controller.worker.failed,
-                          planning_restarts=self.controller.worker.restarts,
-                          planning_error=one_line(self.controller.worker.error or ""))
+                          executor_realtime=self.executor_realtime)
+            values["planning_error"] = one_line(values["planning_error"] or "")
         values["zone_ids"] = ",".join(str(i) for i in self.zones.ids)
         level, message = self._health(values)
         status = DiagnosticStatus(level=level, name=self.get_fully_qualified_name(),
@@ -606,155 +534,17 @@ class PolicyNode(Node):
 
     # -- zones ------------------------------------------------------------------------------------
 
-    def _on_zone(self, msg: PolygonInstanceStamped, info: dict) -> None:
-        """Takes every zone message waiting, not just this one: a flood is applied as one
-        batch (the last message per id) and the union is rebuilt once, when next read.
-
-        Realtime: a batch right after another first waits as long as the last one took, so a
-        flood gets half the executor thread at most. Kept busy at SCHED_FIFO by a flood, the
-        thread can be throttled by the kernel (its real-time budget spent) while it holds the
-        interpreter lock, and the clock's ticks then wait for it (see docs/hostile_inputs.md);
-        the wait coalesces the messages meanwhile, so nothing is lost and a zone waits no
-        longer than behind a batch."""
-        received = time.monotonic()
-        if self.controller is not None and received < self._zones_paced_until:
-            time.sleep(self._zones_paced_until - received)  # frees the CPU and the lock
-        messages = [(msg, info)]
-        for subscription in self.zone_subs:
-            messages += self._take_waiting(subscription, ZONE_BATCH_MAX - len(messages))
-        updates, refused = [], 0
-        for message, message_info in messages:
-            if self._seen_before(message, message_info):
-                continue
-            zone_id = int(message.polygon.id)
-            if message.header.frame_id not in ("", FRAME_ID):
-                refused += 1
-                self.get_logger().warning(
-                    f"zone {zone_id} refused: frame "
-                    f"{one_line(repr(message.header.frame_id), 80)} is not {FRAME_ID!r}")
-                continue
-            stamp = stamp_seconds(message.header.stamp) or None  # 0: unstamped, from arrival
-            updates.append((zone_id, [(p.x, p.y) for p in message.polygon.polygon.points],
-                            stamp))
-        lifetime = self.get_parameter("zone_lifetime").value or None
-        outcome = self.zones.apply(updates, self._now(), lifetime)
-        self._count_zones(outcome, refused)
-        if outcome.changed:
-            self._zones_changed(received)
-        finished = time.monotonic()
-        self._zones_paced_until = finished + (finished - max(received, self._zones_paced_until))
-
-    def _on_keepout_mask(self, msg: OccupancyGrid) -> None:
-        """A keep-out mask: its restricted cells become zones ("keepout/<k>", exact polygons)
-        in place of the previous mask's; they do not expire. Realtime: built by the mask
-        builder's thread, so zones and observations are answered meanwhile; lockstep: here, so
-        a trial stays deterministic. Either way under the caps, which bound the build."""
-        if msg.header.frame_id not in ("", FRAME_ID):
-            self._refuse_mask(f"frame {one_line(repr(msg.header.frame_id), 80)} is not "
-                              f"{FRAME_ID!r}")
-            return
-        info = msg.info
-        grid = {"values": np.asarray(msg.data, dtype=np.int8), "resolution": info.resolution,
-                "origin": (info.origin.position.x, info.origin.position.y),
-                "threshold": self.get_parameter("keepout_threshold").value,
-                "width": info.width, "height": info.height}
-        stamp = stamp_seconds(msg.header.stamp) or None
-        if self.mask_builder is not None:
-            self.mask_builder.submit(stamp, **grid)
-        else:
-            self._take_mask(build_mask(grid, self.mask_caps, self.robot.workspace,
-                                       stamp=stamp))
-
-    def _on_mask_built(self, built: BuiltMask) -> None:
-        """On the builder's thread: hand the mask to the executor's thread."""
-        self._built_mask = built
-        self._mask_ready.trigger()
-
-    def _on_mask_ready(self) -> None:
-        built, self._built_mask = self._built_mask, None
-        if built is not None and built.sequence == self.mask_builder.latest:
-            self._take_mask(built)
-
-    def _refuse_mask(self, reason: str) -> None:
-        self.zone_counts["masks_refused"] += 1
-        self.get_logger().warning(f"keep-out mask refused, zones in force kept: {reason}")
-
-    def _take_mask(self, built: BuiltMask) -> None:
-        if built.polygons is None:
-            self._refuse_mask(built.reason)
-            return
-        ids = [f"keepout/{k}" for k in range(len(built.polygons))]
-        removed = [(old, []) for old in self.keepout_ids if old not in ids]
-        # A mask's pieces are not messages: the caps on zone messages do not refuse them (the
-        # mask's own caps did). Its stamp goes with them, so a clear outlives a restart.
-        outcome = self.zones.apply([*removed, *((i, p, built.stamp) for i, p in
-                                                zip(ids, built.polygons))],
-                                   self._now(), capped=False)
-        in_force = set(self.zones.ids)
-        self.keepout_ids = [i for i in ids if i in in_force]
-        self._count_zones(outcome, 0)
-        self.zone_counts["masks_applied"] += 1
-        self.get_logger().info(f"keep-out mask: {len(self.keepout_ids)} zone(s), built in "
-                               f"{1000 * built.seconds:.0f} ms")
-        if outcome.changed:
-            self._zones_changed()
-
-    def _seen_before(self, message: PolygonInstanceStamped, info: dict) -> bool:
-        """Whether the other zone subscription already delivered this message (a latched
-        publisher reaches both): same publication time, sequence number and id."""
-        key = (info.get("source_timestamp"), info.get("publication_sequence_number"),
-               message.polygon.id)
-        if key in self._zone_messages_seen:
-            return True
-        self._zone_messages_seen[key] = None
-        if len(self._zone_messages_seen) > 2 * ZONE_BATCH_MAX:
-            self._zone_messages_seen.popitem(last=False)
-        return False
-
-    def _now(self) -> float:
-        """s on the node's clock (sim time with use_sim_time), as zone stamps are."""
-        return self.get_clock().now().nanoseconds * 1e-9
-
-    def _take_waiting(self, subscription, limit: int) -> list[tuple]:
-        """The (message, info) pairs already queued on `subscription` (rclpy's own take, as
-        its executor does), so a callback can handle a burst at once."""
-        taken = []
-        try:
-            while len(taken) < limit:
-                with subscription.handle:
-                    got = subscription.handle.take_message(subscription.msg_type,
-                                                           subscription.raw)
-                if got is None:
-                    break
-                taken.append(got)
-        except (AttributeError, TypeError):  # another rclpy: one message per callback
-            pass
-        return taken
-
-    def _count_zones(self, outcome: BatchOutcome, refused_frames: int) -> None:
-        counts = self.zone_counts
-        counts["zone_batches"] += 1
-        counts["zone_messages"] += outcome.received + refused_frames
-        counts["zones_applied"] += outcome.applied
-        counts["zones_refused"] += len(outcome.refused) + refused_frames
-        counts["zones_stale"] += outcome.stale
-        for zone_id, reason in outcome.refused:
-            self.get_logger().warning(f"zone {zone_id} refused, zones in force kept: "
-                                      f"{one_line(reason)}")
-
-    def _zones_changed(self, received: float | None = None) -> None:
-        """In realtime the held setpoint is checked now and a safe one published at once
-        (how long after the zone callback began: `zone_to_setpoint_ms` in the status)."""
+    def _zones_changed(self, received: float) -> None:
+        """The zones in force changed (a message that came at `received`, time.monotonic()):
+        in realtime the held setpoint is checked now and a safe one published at once (how long
+        after: `zone_to_setpoint_ms` in the status)."""
         self.zone_change_time = time.monotonic()
-        received = self.zone_change_time if received is None else received
         self.no_free_space = self._no_free_space()
         if self.controller is None:
-            self._publish_markers()
             return
-        self._markers_due = True
 
         def send(safe: np.ndarray) -> None:
-            sent = self._hold(safe, send_now=True)
+            sent = self._send(safe)
             if sent is not None:
                 self.zone_to_setpoint_ms = 1000 * (sent - received)
 
@@ -765,40 +555,6 @@ class PolicyNode(Node):
         it is until space returns."""
         return leaves_no_room(self.zones.snapshot().geometry, self.robot.workspace,
                               self.robot.pusher_radius)
-
-    def _expire_zones(self) -> None:
-        if self.zones.expire(self._now()):
-            self._zones_changed()
-
-    def _on_clear(self, _request, response):
-        count = len(self.zones)
-        self.zones.clear()
-        self._zones_changed()
-        response.success, response.message = True, f"cleared {count} zones"
-        try:  # remembered across restarts: latched publishers replay what was cleared
-            self.clear_file.parent.mkdir(parents=True, exist_ok=True)
-            self.clear_file.write_text(json.dumps(list(self.zones.cleared)))
-        except OSError as error:
-            self.get_logger().warning(f"cannot remember the clear in {self.clear_file} "
-                                      f"({error.strerror}): a restart would revive the "
-                                      f"cleared zones that latched publishers replay")
-        return response
-
-    def _remembered_clears(self) -> dict[tuple, None]:
-        """The (id, stamp) of zones cleared by this node name in earlier runs."""
-        try:
-            pairs = json.loads(self.clear_file.read_text())
-            return {(zone_id, float(stamp)): None for zone_id, stamp in pairs}
-        except (OSError, ValueError, TypeError):
-            return {}
-
-    def _publish_markers(self) -> None:
-        stamp = self.get_clock().now().to_msg()
-        namespace = "/".join((self.get_namespace().rstrip("/"), MARKER_NAMESPACE))
-        outlines = self.zones.outlines()
-        for k, polygon in enumerate(getattr(self.zones.fixed, "polygons", None) or []):
-            outlines[f"plugin/{k}"] = polygon  # a plug-in check that can show itself
-        self.marker_pub.publish(zone_markers(outlines, stamp, namespace))
 
 
 def main(args: list[str] | None = None) -> int:

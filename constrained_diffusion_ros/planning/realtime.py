@@ -94,6 +94,7 @@ class RealtimeController:
         self.replan: PlanJob | None = None
         self.observations: dict[int, np.ndarray] = {}
         self.step: int | None = None  # the newest observation's control step
+        self.waiting = False  # the newest step has no waypoint: the last setpoint is held
         self.setpoint: np.ndarray | None = None  # (2,) shielded last, what `tick` sends;
         # replaced, never changed in place
         self.plan_seconds = 0.0  # running estimate of one planning call
@@ -120,8 +121,8 @@ class RealtimeController:
         self.step = step
         if first:  # the episode's first plan, at once (`new_episode` stopped the last one's)
             self._ask(prefix=False)
-        if np.isnan(self.queue.at(step)[0]).any():
-            self.stats.held_steps += 1
+        self.waiting = bool(np.isnan(self.queue.at(step)[0]).any())
+        self.stats.held_steps += self.waiting
         return self._update()
 
     def new_episode(self) -> None:
@@ -193,13 +194,15 @@ class RealtimeController:
 
     def _rest_entered(self) -> bool:
         """The rest of the chunk lies where the planner keeps waypoints out of now."""
-        remaining = int(self.queue.remaining(self.step)[0])
-        rest = self.queue.upcoming(np.array([0]), self.step, remaining)
-        return remaining > 0 and self._violates(rest)
+        return bool(self.queue.rest_refused(np.array([0]), self.step, self._refused)[0])
+
+    def _refused(self, waypoints: np.ndarray) -> np.ndarray:
+        """(1, N) the waypoints (1, N, 2) where the planner keeps them out of now."""
+        return self.planner.violates(torch.from_numpy(waypoints), self.zones.area_at(self.step),
+                                     np.array([0])).numpy()
 
     def _violates(self, waypoints: np.ndarray) -> bool:
-        return bool(self.planner.violates(torch.from_numpy(waypoints),
-                                          self.zones.area_at(self.step), np.array([0])).any())
+        return bool(self._refused(waypoints).any())
 
     @torch.inference_mode()  # no autograd here: less overhead per torch call
     def install_results(self) -> np.ndarray | None:
@@ -228,6 +231,22 @@ class RealtimeController:
             self.queue.install(np.array([0]), chunk, job.step, self.step)
             self.stats.plans_installed += 1
         return self._update() if self.step is not None else None
+
+    @property
+    def chunk(self) -> np.ndarray:
+        """(N, 2) the waypoints of the chunk in force (NaN before the first)."""
+        return self.queue.waypoints[0]
+
+    def status(self) -> dict[str, object]:
+        """The controller's and its worker's counters, for diagnostics (`planning_error`: the
+        worker's last fault, or None)."""
+        stats, worker = self.stats, self.worker
+        return {"plans": stats.plans_installed, "plans_dropped": stats.plans_dropped,
+                "plans_cancelled": worker.cancelled, "waypoints_skipped": self.queue.skipped,
+                "held_steps": stats.held_steps, "zone_reactions": stats.zone_reactions,
+                "lead": self.lead, "planning_priority": worker.priority,
+                "planning_errors": worker.errors, "planning_failed": worker.failed,
+                "planning_restarts": worker.restarts, "planning_error": worker.error}
 
     def shutdown(self) -> None:
         self.worker.shutdown()

@@ -1,0 +1,290 @@
+"""Zones in from ROS for a node that obeys them, and their markers out.
+
+`ZoneIngest` is a helper in the manner of tf2_ros's `TransformListener`: built with a node, it
+owns everything that brings zones to `LiveZones` (the zone subscriptions, the keep-out mask
+subscription and the thread that builds masks, the clear service and the file that remembers
+clears across restarts, expiry) and the zone markers that show them. The node hears of a change
+through one callback and reads the counts for its diagnostics; the zones themselves it reads
+from its `LiveZones`, as the planner does.
+
+Zones come in as id-keyed polygons, taken in batches as fast as they come and coalesced to the
+last message per id; a malformed one, or one over the caps, is refused with a warning while the
+zones in force stay in force.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from geometry_msgs.msg import PolygonInstanceStamped
+from nav_msgs.msg import OccupancyGrid
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
+
+from constrained_diffusion_ros.zones.area import Bounds
+from constrained_diffusion_ros.zones.grid import BuiltMask, MaskBuilder, MaskCaps, build_mask
+from constrained_diffusion_ros.zones.live import BatchOutcome, LiveZones
+from msg_schemas import FRAME_ID, SERVICES, TOPICS, qos_profile
+from msg_schemas.conversions import stamp_seconds, zone_markers
+from msg_schemas.text import one_line
+
+ZONE_BATCH_MAX = 10_000  # zone messages taken in one callback at most
+MARKER_NAMESPACE = "zones"  # zone markers: marker namespace <node namespace>/zones, id = zone id
+EXPIRY_PERIOD_S = 0.2  # zones past their lifetime are dropped this often
+COUNTS = ("zone_messages", "zones_applied", "zones_refused", "zones_stale", "zone_batches",
+          "masks_applied", "masks_refused")
+
+
+class ZoneIngest:
+    """Feeds `zones` from the node's zone topics, keep-out masks and clear service; calls
+    `on_change(received)` (time.monotonic() the message that changed them came, or now) on the
+    node's executor thread whenever the zones in force change.
+
+    Reads the node's `zone_lifetime` and `keepout_threshold` parameters at each message: they
+    are settable at run time. `realtime`: masks are built on a thread of their own (zones and
+    observations are answered meanwhile), a burst of zone messages gets half the executor
+    thread at most, and markers go out at most every `marker_period_s`; else everything happens
+    in the callback, so a lockstep trial stays deterministic. `shutdown` ends the mask thread.
+    """
+
+    def __init__(self, node: Node, zones: LiveZones, workspace: Bounds, mask_caps: MaskCaps,
+                 on_change: Callable[[float], None], realtime: bool,
+                 marker_period_s: float) -> None:
+        self.node, self.zones, self.workspace, self.mask_caps = node, zones, workspace, mask_caps
+        self.on_change, self.realtime = on_change, realtime
+        self.counts = dict.fromkeys(COUNTS, 0)
+        # $ROS_HOME/constrained_diffusion_ros/<node>.cleared: the (id, stamp) of cleared zones,
+        # so their replays stay gone after a restart (exact messages: any clock, any publisher).
+        ros_home = Path(os.environ.get("ROS_HOME") or Path.home() / ".ros")
+        self.clear_file = ros_home / "constrained_diffusion_ros" / (
+            node.get_fully_qualified_name().strip("/").replace("/", "__") + ".cleared")
+        zones.cleared = self._remembered_clears()
+        self.marker_pub = node.create_publisher(MarkerArray, TOPICS["zone_markers"].name,
+                                                qos_profile(TOPICS["zone_markers"], "publisher"))
+        # From any publisher: a volatile subscription matches every one, a transient-local one
+        # also gets a latched publisher's history when the node (re)starts; a message both
+        # deliver is taken once.
+        latched = qos_profile(TOPICS["zones"])
+        volatile = qos_profile(TOPICS["zones"])
+        volatile.durability = DurabilityPolicy.VOLATILE
+        self.subscriptions = [node.create_subscription(PolygonInstanceStamped,
+                                                       TOPICS["zones"].name, self._on_zone,
+                                                       profile)
+                              for profile in (volatile, latched)]
+        self._seen: OrderedDict[tuple, None] = OrderedDict()
+        self._paced_until = 0.0  # realtime: no zone batch before then (`_on_zone`)
+        node.create_subscription(OccupancyGrid, TOPICS["keepout_mask"].name,
+                                 self._on_keepout_mask, qos_profile(TOPICS["keepout_mask"]))
+        self.keepout_ids: list[str] = []
+        self.mask_builder: MaskBuilder | None = None
+        if realtime:  # masks built off the thread that answers zones
+            self._mask_ready = node.create_guard_condition(self._on_mask_ready)
+            self._built_mask: BuiltMask | None = None
+            self.mask_builder = MaskBuilder(self._on_mask_built, mask_caps, workspace)
+            self._markers_due = False
+            node.create_timer(marker_period_s, self._on_markers_timer)
+        node.create_service(Trigger, SERVICES["clear_zones"].name, self._on_clear)
+        node.create_timer(EXPIRY_PERIOD_S, self._expire)
+        if zones.fixed is not None:
+            self.publish_markers()  # viewers see the plug-in check from the start
+
+    def shutdown(self) -> None:
+        if self.mask_builder is not None:
+            self.mask_builder.shutdown()
+
+    # -- zone messages ----------------------------------------------------------------------
+
+    def _on_zone(self, msg: PolygonInstanceStamped, info: dict) -> None:
+        """Takes every zone message waiting, not just this one: a flood is applied as one
+        batch (the last message per id) and the union is rebuilt once, when next read.
+
+        Realtime: a batch right after another first waits as long as the last one took, so a
+        flood gets half the executor thread at most. Kept busy at SCHED_FIFO by a flood, the
+        thread can be throttled by the kernel (its real-time budget spent) while it holds the
+        interpreter lock, and the clock's ticks then wait for it (see docs/hostile_inputs.md);
+        the wait coalesces the messages meanwhile, so nothing is lost and a zone waits no
+        longer than behind a batch."""
+        received = time.monotonic()
+        if self.realtime and received < self._paced_until:
+            time.sleep(self._paced_until - received)  # frees the CPU and the lock
+        messages = [(msg, info)]
+        for subscription in self.subscriptions:
+            messages += self._take_waiting(subscription, ZONE_BATCH_MAX - len(messages))
+        updates, refused = [], 0
+        for message, message_info in messages:
+            if self._seen_before(message, message_info):
+                continue
+            zone_id = int(message.polygon.id)
+            if message.header.frame_id not in ("", FRAME_ID):
+                refused += 1
+                self.node.get_logger().warning(
+                    f"zone {zone_id} refused: frame "
+                    f"{one_line(repr(message.header.frame_id), 80)} is not {FRAME_ID!r}")
+                continue
+            stamp = stamp_seconds(message.header.stamp) or None  # 0: unstamped, from arrival
+            updates.append((zone_id, [(p.x, p.y) for p in message.polygon.polygon.points],
+                            stamp))
+        lifetime = self.node.get_parameter("zone_lifetime").value or None
+        outcome = self.zones.apply(updates, self._now(), lifetime)
+        self._count(outcome, refused)
+        if outcome.changed:
+            self._changed(received)
+        finished = time.monotonic()
+        self._paced_until = finished + (finished - max(received, self._paced_until))
+
+    def _seen_before(self, message: PolygonInstanceStamped, info: dict) -> bool:
+        """Whether the other zone subscription already delivered this message (a latched
+        publisher reaches both): same publication time, sequence number and id."""
+        key = (info.get("source_timestamp"), info.get("publication_sequence_number"),
+               message.polygon.id)
+        if key in self._seen:
+            return True
+        self._seen[key] = None
+        if len(self._seen) > 2 * ZONE_BATCH_MAX:
+            self._seen.popitem(last=False)
+        return False
+
+    @staticmethod
+    def _take_waiting(subscription, limit: int) -> list[tuple]:
+        """The (message, info) pairs already queued on `subscription` (rclpy's own take, as
+        its executor does), so a callback can handle a burst at once."""
+        taken = []
+        try:
+            while len(taken) < limit:
+                with subscription.handle:
+                    got = subscription.handle.take_message(subscription.msg_type,
+                                                           subscription.raw)
+                if got is None:
+                    break
+                taken.append(got)
+        except (AttributeError, TypeError):  # another rclpy: one message per callback
+            pass
+        return taken
+
+    # -- keep-out masks ---------------------------------------------------------------------
+
+    def _on_keepout_mask(self, msg: OccupancyGrid) -> None:
+        """A keep-out mask: its restricted cells become zones ("keepout/<k>", exact polygons)
+        in place of the previous mask's; they do not expire. Under the caps, which bound the
+        build."""
+        if msg.header.frame_id not in ("", FRAME_ID):
+            self._refuse_mask(f"frame {one_line(repr(msg.header.frame_id), 80)} is not "
+                              f"{FRAME_ID!r}")
+            return
+        info = msg.info
+        grid = {"values": np.asarray(msg.data, dtype=np.int8), "resolution": info.resolution,
+                "origin": (info.origin.position.x, info.origin.position.y),
+                "threshold": self.node.get_parameter("keepout_threshold").value,
+                "width": info.width, "height": info.height}
+        stamp = stamp_seconds(msg.header.stamp) or None
+        if self.mask_builder is not None:
+            self.mask_builder.submit(stamp, **grid)
+        else:
+            self._take_mask(build_mask(grid, self.mask_caps, self.workspace, stamp=stamp))
+
+    def _on_mask_built(self, built: BuiltMask) -> None:
+        """On the builder's thread: hand the mask to the executor's thread."""
+        self._built_mask = built
+        self._mask_ready.trigger()
+
+    def _on_mask_ready(self) -> None:
+        built, self._built_mask = self._built_mask, None
+        if built is not None and built.sequence == self.mask_builder.latest:
+            self._take_mask(built)
+
+    def _refuse_mask(self, reason: str) -> None:
+        self.counts["masks_refused"] += 1
+        self.node.get_logger().warning(f"keep-out mask refused, zones in force kept: {reason}")
+
+    def _take_mask(self, built: BuiltMask) -> None:
+        if built.polygons is None:
+            self._refuse_mask(built.reason)
+            return
+        ids = [f"keepout/{k}" for k in range(len(built.polygons))]
+        removed = [(old, []) for old in self.keepout_ids if old not in ids]
+        # A mask's pieces are not messages: the caps on zone messages do not refuse them (the
+        # mask's own caps did). Its stamp goes with them, so a clear outlives a restart.
+        outcome = self.zones.apply([*removed, *((i, p, built.stamp) for i, p in
+                                                zip(ids, built.polygons))],
+                                   self._now(), capped=False)
+        in_force = set(self.zones.ids)
+        self.keepout_ids = [i for i in ids if i in in_force]
+        self._count(outcome, 0)
+        self.counts["masks_applied"] += 1
+        self.node.get_logger().info(f"keep-out mask: {len(self.keepout_ids)} zone(s), built "
+                                    f"in {1000 * built.seconds:.0f} ms")
+        if outcome.changed:
+            self._changed()
+
+    # -- clearing and expiry ----------------------------------------------------------------
+
+    def _expire(self) -> None:
+        if self.zones.expire(self._now()):
+            self._changed()
+
+    def _on_clear(self, _request, response):
+        count = len(self.zones)
+        self.zones.clear()
+        self._changed()
+        response.success, response.message = True, f"cleared {count} zones"
+        try:  # remembered across restarts: latched publishers replay what was cleared
+            self.clear_file.parent.mkdir(parents=True, exist_ok=True)
+            self.clear_file.write_text(json.dumps(list(self.zones.cleared)))
+        except OSError as error:
+            self.node.get_logger().warning(
+                f"cannot remember the clear in {self.clear_file} ({error.strerror}): a restart "
+                f"would revive the cleared zones that latched publishers replay")
+        return response
+
+    def _remembered_clears(self) -> dict[tuple, None]:
+        """The (id, stamp) of zones cleared by this node name in earlier runs."""
+        try:
+            pairs = json.loads(self.clear_file.read_text())
+            return {(zone_id, float(stamp)): None for zone_id, stamp in pairs}
+        except (OSError, ValueError, TypeError):
+            return {}
+
+    # -- what follows a change ----------------------------------------------------------------
+
+    def _changed(self, received: float | None = None) -> None:
+        self.on_change(time.monotonic() if received is None else received)
+        if self.realtime:
+            self._markers_due = True
+        else:
+            self.publish_markers()
+
+    def _count(self, outcome: BatchOutcome, refused_frames: int) -> None:
+        counts = self.counts
+        counts["zone_batches"] += 1
+        counts["zone_messages"] += outcome.received + refused_frames
+        counts["zones_applied"] += outcome.applied
+        counts["zones_refused"] += len(outcome.refused) + refused_frames
+        counts["zones_stale"] += outcome.stale
+        for zone_id, reason in outcome.refused:
+            self.node.get_logger().warning(f"zone {zone_id} refused, zones in force kept: "
+                                           f"{one_line(reason)}")
+
+    def _on_markers_timer(self) -> None:
+        if self._markers_due:  # viewers see zone changes at most once per tick
+            self._markers_due = False
+            self.publish_markers()
+
+    def publish_markers(self) -> None:
+        stamp = self.node.get_clock().now().to_msg()
+        namespace = "/".join((self.node.get_namespace().rstrip("/"), MARKER_NAMESPACE))
+        outlines = self.zones.outlines()
+        for k, polygon in enumerate(getattr(self.zones.fixed, "polygons", None) or []):
+            outlines[f"plugin/{k}"] = polygon  # a plug-in check that can show itself
+        self.marker_pub.publish(zone_markers(outlines, stamp, namespace))
+
+    def _now(self) -> float:
+        """s on the node's clock (sim time with use_sim_time), as zone stamps are."""
+        return self.node.get_clock().now().nanoseconds * 1e-9

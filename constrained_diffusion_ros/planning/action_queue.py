@@ -11,6 +11,8 @@ controller (realtime.py) on a clock.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import torch
 
@@ -84,6 +86,21 @@ class ActionQueue:
         r, c = np.nonzero(ok)
         out[r, c] = self.waypoints[np.asarray(rows)[r], index[r, c]]
         return out
+
+    def rest_refused(self, rows: np.ndarray, step: int,
+                     refused: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+        """(R,) whether a waypoint of the rows' chunks still to execute from step `step` on is
+        one that `refused` ((R, N, 2) -> (R, N) bool) refuses. With the planner's `violates`
+        (where its plans keep waypoints out of now) it is the one replan rule, that the
+        evaluation's executor and the live controller share: replan when zones came onto the
+        rest of the chunk."""
+        rows = np.asarray(rows)
+        remaining = self.remaining(step)[rows]
+        count = int(remaining.max(initial=0))
+        if count == 0:
+            return np.zeros(len(rows), dtype=bool)
+        inside = np.asarray(refused(self.upcoming(rows, step, count)))
+        return (inside & (np.arange(count)[None] < remaining[:, None])).any(axis=1)
 
 
 def committed_prefix(queue: ActionQueue, rows: np.ndarray, step: int, delay: int, soft: int,

@@ -172,11 +172,9 @@ class ChunkExecutor:
         rows = np.nonzero((version != self.planned_version) & (remaining > 0))[0]
         if len(rows) == 0:
             return due
-        count = self.n_action_steps
-        waypoints = self.queue.upcoming(rows, step, count)
         zones = None if area is None else area.select_rows(rows)
-        inside = self.planner.violates(torch.from_numpy(waypoints), zones, rows).numpy()
-        due[rows] = (inside & (np.arange(count)[None] < remaining[rows, None])).any(axis=1)
+        due[rows] = self.queue.rest_refused(rows, step, lambda waypoints: self.planner.violates(
+            torch.from_numpy(waypoints), zones, rows).numpy())
         return due
 
     def _replan(self, rows: np.ndarray, area: RestrictedArea | None,

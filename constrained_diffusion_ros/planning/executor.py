@@ -131,23 +131,24 @@ class ChunkExecutor:
             self._install_ready(step)
         waypoint = self.queue.at(step)
         waiting = np.isnan(waypoint).any(axis=-1)  # hold the last setpoint until a plan is in
-        if waiting.any() and self.held is None:  # nothing sent yet: hold the pusher where it is
-            self.held = self.planner.robot.pusher(self.history.latest).astype(float)
-        action = np.where(waiting[:, None], self.held, waypoint) if waiting.any() else waypoint
+        if waiting.any() and self.last_setpoints is None:  # nothing sent yet: stay put
+            self.last_setpoints = self.planner.robot.pusher(self.history.latest).astype(float)
+        action = np.where(waiting[:, None], self.last_setpoints, waypoint) if waiting.any() \
+            else waypoint
         chunk = np.where(waiting, -1, self.queue.installs)
         self.handed_over = (chunk != self.executed_id) & ~waiting
         self.executed_id = chunk
         self.wanted = action  # what the plan asked for, before the guard's last word
         # The guard sees the positions as the planner saw them (float32 observations).
-        self.held = self.planner.guard(area, self.history.latest, action, step)
-        return self.held
+        self.last_setpoints = self.planner.guard(area, self.history.latest, action, step)
+        return self.last_setpoints
 
     def _start(self, observations: np.ndarray) -> None:
         batch = len(observations)
         self.history = ObservationHistory(observations, self.n_obs_steps)
         self.queue = ActionQueue(batch, self.n_action_steps)
         self.executed_id = np.full(batch, -1)  # the chunk (install count) executed; -1: held
-        self.held: np.ndarray | None = None  # the setpoints executed last
+        self.last_setpoints: np.ndarray | None = None  # the setpoints executed last
         self.planned_version = np.zeros(batch, dtype=np.int64)
         self.ready_at = np.full(batch, -1)  # step at which the pending plan is ready; -1: none
         horizon = self.planner.policy_config.horizon

@@ -3,7 +3,7 @@ controller and its workers: a job (`PlanJob`), its result (`PlanResult`), how a 
 (`plan_chunk`), the messages of the planning process's protocol (`Request`, `Reply`) and what every
 worker offers (`PlanWorker`).
 
-Two workers implement `PlanWorker`: `BackgroundPlanner` (thread_worker.py) plans in a thread of
+Two workers implement `PlanWorker`: `PlanningThread` (thread_worker.py) plans in a thread of
 the node's process, `PlanningProcess` (planning_process.py) in a child process.
 """
 

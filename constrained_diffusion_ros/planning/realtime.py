@@ -23,7 +23,7 @@ from constrained_diffusion_ros.planning.action_queue import ActionQueue, committ
 from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult, PlanWorker, plan_chunk
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.planning.planning_process import PlanningProcess
-from constrained_diffusion_ros.planning.thread_worker import BackgroundPlanner
+from constrained_diffusion_ros.planning.thread_worker import PlanningThread
 from constrained_diffusion_ros.zones.geometry import leaves_no_room
 from constrained_diffusion_ros.zones.live import LiveZones
 
@@ -61,15 +61,15 @@ class RealtimeController:
     """The live action filter, free of ROS: the node feeds it observations, zone changes and
     clock ticks, and publishes what it returns.
 
-    A `BackgroundPlanner` plans from the latest observations `lead` steps before the chunk in
-    force runs out (or at once when new zones put the rest of it where the planner keeps
-    waypoints out of); its chunk is installed as soon as it arrives with the steps that passed
-    skipped, and denoised with the committed waypoints inpainted. The setpoint is computed
-    whenever what it depends on changes (an observation, a plan installed, zones changed) and
-    passes the planner's guard (the shield) against the zones in force then; `tick` only reads
-    it, so a clock on its own thread sends it on time however long the computing takes. Call
-    everything else from one thread (the node's executor); `wake` is called from the worker
-    when a plan is ready, to get `install_results` called.
+    Its worker (a `PlanningProcess`, or a `PlanningThread`) plans from the latest observations
+    `lead` steps before the chunk in force runs out (or at once when new zones put the rest of
+    it where the planner keeps waypoints out of); its chunk is installed as soon as it arrives
+    with the steps that passed skipped, and denoised with the committed waypoints inpainted. The
+    setpoint is computed whenever what it depends on changes (an observation, a plan installed,
+    zones changed) and passes the planner's guard (the shield) against the zones in force then;
+    `tick` only reads it, so a clock on its own thread sends it on time however long the
+    computing takes. Call everything else from one thread (the node's executor); `wake` is
+    called from the worker when a plan is ready, to get `install_results` called.
     """
 
     def __init__(self, planner: ConstrainedPlanner, zones: LiveZones, rate_hz: float,
@@ -101,7 +101,7 @@ class RealtimeController:
         self.stats = ControllerStats()
         self._results: list[PlanResult] = []
         self._results_lock = threading.Lock()
-        self.worker: PlanWorker = (BackgroundPlanner(self._plan, self._on_result, noise_seed)
+        self.worker: PlanWorker = (PlanningThread(self._plan, self._on_result, noise_seed)
                        if process_threads is None else
                        PlanningProcess(planner, self._on_result, noise_seed, process_threads,
                                        idle=idle))

@@ -26,7 +26,7 @@ from constrained_diffusion_ros.sampling.sampler import Interrupted
 LOGGER = logging.getLogger(__name__)
 
 
-class BackgroundPlanner:
+class PlanningThread:
     """A worker thread that plans one chunk at a time, off the control thread.
 
     `submit` replaces any job not yet started (only the newest request matters), and with
@@ -41,7 +41,7 @@ class BackgroundPlanner:
     def __init__(self, plan: Callable[[PlanJob, torch.Generator, Callable[[], bool]],
                                       np.ndarray],
                  on_result: Callable[[PlanResult], None], noise_seed: int = 0,
-                 niceness: int = 5, name: str = "background_planner") -> None:
+                 niceness: int = 5, name: str = "planning_thread") -> None:
         self._plan, self._on_result, self._niceness = plan, on_result, niceness
         self.priority = f"nice {niceness}"  # how the worker thread is scheduled
         self.generator = torch.Generator().manual_seed(noise_seed)

@@ -190,7 +190,9 @@ class LiveZones:
     # The executor's zone source: the same zones for every step and episode, until they change.
 
     def area_at(self, step: int) -> RestrictedArea | None:
-        """The zones in force and the fixed area, or None when there is neither."""
+        """The zones in force and the fixed area, or None when there is neither. `step` is not
+        used: live zones are those in force now, whatever the step (it is there for the
+        executor's `ZoneSource`, whose scripted zones change at given steps)."""
         snapshot = self.snapshot()
         if self.fixed is None:
             return None if snapshot.is_empty else snapshot

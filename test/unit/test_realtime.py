@@ -38,7 +38,7 @@ from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult, pl
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.planning.planning_process import PlanningProcess, _send, serve
 from constrained_diffusion_ros.planning.realtime import RealtimeController, warm_up
-from constrained_diffusion_ros.planning.thread_worker import BackgroundPlanner
+from constrained_diffusion_ros.planning.thread_worker import PlanningThread
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.weights import save_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
@@ -96,7 +96,7 @@ def test_the_background_planner_plans_the_newest_job_on_its_own_thread() -> None
         return np.full((16, 2), float(job.generation))
 
     done = threading.Semaphore(0)
-    worker = BackgroundPlanner(plan, lambda r: (results.append(r), done.release()))
+    worker = PlanningThread(plan, lambda r: (results.append(r), done.release()))
     try:
         job = PlanJob(1, 0, torch.zeros(1, 2, 20), None, 0, None)
         worker.submit(job)
@@ -127,7 +127,7 @@ def test_the_background_planner_stops_the_plan_in_flight_when_asked() -> None:
             threading.Event().wait(0.01)
         return np.full((16, 2), float(job.generation))
 
-    worker = BackgroundPlanner(plan, lambda r: (results.append(r), done.release()))
+    worker = PlanningThread(plan, lambda r: (results.append(r), done.release()))
     try:
         worker.submit(PlanJob(1, 0, torch.zeros(1, 2, 20), None, 0, None))
         assert started.wait(5)
@@ -154,7 +154,7 @@ def test_the_background_planner_reseeds_from_the_next_job_and_stops_the_one_in_f
             raise Interrupted("stopped")
         return noise
 
-    worker = BackgroundPlanner(plan, lambda r: (results.append(r), done.release()))
+    worker = PlanningThread(plan, lambda r: (results.append(r), done.release()))
     try:
         worker.submit(PlanJob(1, 0, torch.zeros(1, 2, 20), None, 0, None))
         assert started.wait(5)
@@ -358,7 +358,7 @@ def test_a_planning_error_is_kept_and_the_worker_keeps_serving() -> None:
             raise RuntimeError("boom")
         return np.zeros((16, 2))
 
-    worker = BackgroundPlanner(plan, lambda r: done.release())
+    worker = PlanningThread(plan, lambda r: done.release())
     try:
         worker.submit(PlanJob(1, 0, torch.zeros(1, 2, 20), None, 0, None))
         assert failed.wait(5)

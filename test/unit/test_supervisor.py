@@ -34,7 +34,7 @@ from constrained_diffusion_ros.planning.planning_process import (
     PlanningProcess,
 )
 from constrained_diffusion_ros.planning.realtime import RealtimeController
-from constrained_diffusion_ros.planning.thread_worker import BackgroundPlanner
+from constrained_diffusion_ros.planning.thread_worker import PlanningThread
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones import LiveZones
@@ -169,7 +169,7 @@ def test_the_thread_worker_reports_a_fault_until_the_next_plan() -> None:
         return np.zeros((16, 2))
 
     seen: list[bool] = []
-    worker = BackgroundPlanner(plan, lambda r: (seen.append(worker.failed), arrived.release()))
+    worker = PlanningThread(plan, lambda r: (seen.append(worker.failed), arrived.release()))
     try:
         assert not worker.failed and worker.restarts == 0
         worker.submit(job(1))

@@ -1,4 +1,6 @@
-"""The action queue of real-time chunking: waypoints indexed by control step, free of threads.
+"""The action queue of real-time chunking: waypoints indexed by control step, free of threads,
+with what the evaluation's executor and the live controller share: the replan rule, the rule
+for a chunk used up, and the observation history.
 
 A chunk planned from the observation of step t puts its executed waypoint j (chunk index
 `first_executed + j`) at step t + j, whenever it arrives: installed at a later step, the
@@ -73,6 +75,16 @@ class ActionQueue:
         out[ok] = self.waypoints[np.nonzero(ok)[0], index[ok]]
         return out
 
+    def at_or(self, step: int, held: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(B, 2) the waypoints of step `step`, with `held` (B, 2) where a row has none: the
+        robot holds its last setpoint until a plan arrives (the one rule for a chunk used up);
+        and (B,) which rows had none."""
+        waypoints = self.at(step)
+        waiting = np.isnan(waypoints).any(axis=-1)
+        if waiting.any():
+            waypoints[waiting] = np.asarray(held, dtype=float)[waiting]
+        return waypoints, waiting
+
     def remaining(self, step: int) -> np.ndarray:
         """(B,) waypoints still to execute from step `step` on; 0 without a chunk."""
         left = self.end - self.offset(step)
@@ -101,6 +113,39 @@ class ActionQueue:
             return np.zeros(len(rows), dtype=bool)
         inside = np.asarray(refused(self.upcoming(rows, step, count)))
         return (inside & (np.arange(count)[None] < remaining[:, None])).any(axis=1)
+
+
+class ObservationHistory:
+    """The last `n_steps` observations per episode, the policy's input. At the start the
+    first one stands for the steps before it; a control step with no observation (a real-time
+    node may miss one) repeats the one before it, and after a gap as long as the history the
+    newest stands for them all, as at the start."""
+
+    def __init__(self, first: np.ndarray, n_steps: int) -> None:
+        self.frames = np.repeat(np.asarray(first, dtype=np.float32)[:, None], n_steps, axis=1)
+
+    def push(self, observation: np.ndarray, steps: int = 1) -> None:
+        """(B, obs_dim) the observation `steps` control steps after the newest; 0: the newest
+        step's again (it replaces it)."""
+        observation = np.asarray(observation, dtype=np.float32)[:, None]
+        if steps == 0:
+            self.frames = np.concatenate([self.frames[:, :-1], observation], axis=1)
+            return
+        n_steps = self.frames.shape[1]
+        if steps >= n_steps:
+            self.frames = np.repeat(observation, n_steps, axis=1)
+            return
+        missed = np.repeat(self.frames[:, -1:], steps - 1, axis=1)
+        self.frames = np.concatenate([self.frames, missed, observation], axis=1)[:, -n_steps:]
+
+    def tensor(self, rows: np.ndarray | None = None) -> torch.Tensor:
+        frames = self.frames if rows is None else self.frames[rows]
+        return torch.from_numpy(frames.astype(np.float32))
+
+    @property
+    def latest(self) -> np.ndarray:
+        """(B, obs_dim) the observations of the newest step."""
+        return self.frames[:, -1]
 
 
 def committed_prefix(queue: ActionQueue, rows: np.ndarray, step: int, delay: int, soft: int,

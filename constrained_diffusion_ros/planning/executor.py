@@ -16,7 +16,11 @@ from typing import Protocol
 import numpy as np
 import torch
 
-from constrained_diffusion_ros.planning.action_queue import ActionQueue, committed_prefix
+from constrained_diffusion_ros.planning.action_queue import (
+    ActionQueue,
+    ObservationHistory,
+    committed_prefix,
+)
 from constrained_diffusion_ros.planning.planners import ChunkPlanner
 from constrained_diffusion_ros.zones.area import RestrictedArea
 
@@ -32,25 +36,6 @@ class ZoneSource(Protocol):
     def version_at(self, step: int) -> int | np.ndarray:
         """Equal versions (one, or one per episode) mean equal zones."""
         ...
-
-
-class ObservationHistory:
-    """The last `n_steps` observations per episode; at the start, the first one repeated."""
-
-    def __init__(self, first: np.ndarray, n_steps: int) -> None:
-        self.frames = np.repeat(np.asarray(first, dtype=np.float32)[:, None], n_steps, axis=1)
-
-    def push(self, observation: np.ndarray) -> None:
-        self.frames = np.concatenate([self.frames[:, 1:], observation[:, None]], axis=1)
-
-    def tensor(self, rows: np.ndarray | None = None) -> torch.Tensor:
-        frames = self.frames if rows is None else self.frames[rows]
-        return torch.from_numpy(frames.astype(np.float32))
-
-    @property
-    def latest(self) -> np.ndarray:
-        """(B, obs_dim) the observations of the current step."""
-        return self.frames[:, -1]
 
 
 @dataclass(frozen=True)
@@ -129,12 +114,9 @@ class ChunkExecutor:
         if due.any():
             self._replan(np.nonzero(due)[0], area, version, step)
             self._install_ready(step)
-        waypoint = self.queue.at(step)
-        waiting = np.isnan(waypoint).any(axis=-1)  # hold the last setpoint until a plan is in
-        if waiting.any() and self.last_setpoints is None:  # nothing sent yet: stay put
+        if self.last_setpoints is None:  # nothing sent yet: stay put until a plan is in
             self.last_setpoints = self.planner.robot.pusher(self.history.latest).astype(float)
-        action = np.where(waiting[:, None], self.last_setpoints, waypoint) if waiting.any() \
-            else waypoint
+        action, waiting = self.queue.at_or(step, self.last_setpoints)
         chunk = np.where(waiting, -1, self.queue.installs)
         self.handed_over = (chunk != self.executed_id) & ~waiting
         self.executed_id = chunk

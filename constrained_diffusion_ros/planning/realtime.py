@@ -19,7 +19,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from constrained_diffusion_ros.planning.action_queue import ActionQueue, committed_prefix
+from constrained_diffusion_ros.planning.action_queue import (
+    ActionQueue,
+    ObservationHistory,
+    committed_prefix,
+)
 from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult, PlanWorker, plan_chunk
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.planning.planning_process import PlanningProcess
@@ -92,7 +96,7 @@ class RealtimeController:
         # (that one was stopped), until it arrives: later changes do not stop it in turn, or a
         # zone re-published on every frame would stop every plan.
         self.replan: PlanJob | None = None
-        self.observations: dict[int, np.ndarray] = {}
+        self.history: ObservationHistory | None = None  # (1 episode)
         self.step: int | None = None  # the newest observation's control step
         self.waiting = False  # the newest step has no waypoint: the last setpoint is held
         self.setpoint: np.ndarray | None = None  # (2,) shielded last, what `tick` sends;
@@ -115,9 +119,10 @@ class RealtimeController:
         if self.step is not None and step < self.step:
             self.new_episode()
         first = self.step is None
-        self.observations[step] = np.asarray(observation, dtype=np.float32)
-        for old in [s for s in self.observations if s <= step - self.n_obs_steps]:
-            del self.observations[old]
+        if first:
+            self.history = ObservationHistory(np.asarray(observation)[None], self.n_obs_steps)
+        else:
+            self.history.push(np.asarray(observation)[None], step - self.step)
         self.step = step
         if first:  # the episode's first plan, at once (`new_episode` stopped the last one's)
             self._ask(prefix=False)
@@ -131,7 +136,7 @@ class RealtimeController:
         self.generation += 1
         self.replan = None
         self.queue.clear()
-        self.observations.clear()
+        self.history = None
         self.step, self.setpoint = None, None
         self.planner.reset()
         self.worker.reseed(self.noise_seed)
@@ -254,14 +259,13 @@ class RealtimeController:
     # -- internals ------------------------------------------------------------------------
 
     def _pusher(self) -> np.ndarray:
-        return self.planner.robot.pusher(self.observations[self.step]).astype(float)
+        return self.planner.robot.pusher(self.history.latest[0]).astype(float)
 
     def _update(self, ask: bool = True) -> np.ndarray:
         """The setpoint of the newest step from the chunk in force (the one held when it has
         none), through the guard; asks for the next plan when the chunk is running out."""
-        waypoint = self.queue.at(self.step)[0]
-        if np.isnan(waypoint).any():
-            waypoint = self.setpoint if self.setpoint is not None else self._pusher()
+        held = self.setpoint if self.setpoint is not None else self._pusher()
+        waypoint = self.queue.at_or(self.step, held[None])[0][0]
         if ask:
             self._ask_if_running_out()
         self.setpoint = self._guarded(waypoint)
@@ -278,16 +282,10 @@ class RealtimeController:
         """The zones in force now decide: a waypoint planned before them is moved out of them
         first (the planner's `keep_out`), then the shield has the last word."""
         area = self.zones.area_at(self.step)
-        latest = self.observations[self.step][None]
+        latest = self.history.latest
         setpoint = np.asarray(setpoint, float)[None]
         setpoint = self.planner.keep_out(area, setpoint)
         return self.planner.guard(area, latest, setpoint, self.step)[0]
-
-    def _history(self) -> torch.Tensor:
-        frames, latest = [], self.observations[self.step]
-        for step in range(self.step - self.n_obs_steps + 1, self.step + 1):
-            frames.append(self.observations.get(step, frames[-1] if frames else latest))
-        return torch.from_numpy(np.stack(frames)[None])
 
     def _ask(self, prefix: bool, replan: bool = False) -> None:
         """Submit a plan from the newest observations (replacing any not yet started); a
@@ -297,7 +295,7 @@ class RealtimeController:
             committed = committed_prefix(self.queue, np.array([0]), self.step, self.lead,
                                          self.soft, self.first_executed)
         self.stats.plans_asked += 1
-        job = PlanJob(self.generation, self.step, self._history(),
+        job = PlanJob(self.generation, self.step, self.history.tensor(),
                       self.zones.area_at(self.step), self.zones.version_at(self.step), committed)
         cancel = replan and self.replan is None
         if replan:

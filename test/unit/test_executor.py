@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from constrained_diffusion_ros.planning.action_queue import ObservationHistory
 from constrained_diffusion_ros.planning.executor import ChunkExecutor
 from constrained_diffusion_ros.policy.config import PolicyConfig
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
@@ -127,3 +128,16 @@ def test_a_new_episode_starts_afresh_and_reseeds_the_noise() -> None:
     run(executor, range(2))
     assert [step for step, _, _ in planner.calls] == [0, 0]  # a new plan at the new step 0
     assert executor.stats.planner_calls == 2 and executor.stats.planned_chunks == 4
+
+
+def test_the_history_repeats_the_observation_before_a_missed_step() -> None:
+    """A real-time node may miss an observation: the step it missed repeats the one before;
+    after a gap as long as the history, the newest stands for every step, as at the start."""
+    history = ObservationHistory(np.array([[1.0]]), n_steps=3)
+    history.push(np.array([[2.0]]))
+    history.push(np.array([[4.0]]), steps=2)  # step 3 missed
+    np.testing.assert_array_equal(history.frames[0, :, 0], [2.0, 2.0, 4.0])
+    history.push(np.array([[5.0]]), steps=0)  # step 4 again
+    np.testing.assert_array_equal(history.frames[0, :, 0], [2.0, 2.0, 5.0])
+    history.push(np.array([[9.0]]), steps=3)
+    np.testing.assert_array_equal(history.frames[0, :, 0], [9.0, 9.0, 9.0])

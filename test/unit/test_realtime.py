@@ -701,7 +701,7 @@ def test_a_new_episode_stops_the_plan_in_flight_and_never_installs_one_from_befo
         stats = controller.stats
         assert (stats.plans_asked, stats.plans_dropped, stats.plans_installed) == (2, 0, 1)
         assert controller.worker.cancelled == 1
-        stale = PlanJob(controller.generation - 1, 5, controller._history(), None, 0, None)
+        stale = PlanJob(controller.generation - 1, 5, controller.history.tensor(), None, 0, None)
         controller._on_result(PlanResult(stale, controller.queue.waypoints[0].copy(), 0.1))
         controller.install_results()
         assert (stats.plans_dropped, stats.plans_installed) == (1, 1)

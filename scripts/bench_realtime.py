@@ -139,6 +139,11 @@ class Condition:
     nearest_after: float = float("inf")  # px, the closest of them came to the zone
     overlap_steps: int = 0
     overlap_px: float = 0.0  # the deepest overlap of the disc
+    # The same in trials whose zone lay across the way of a setpoint the node had already sent
+    # when the zone was published (the client had not received it when it placed the zone): a
+    # race no filter can win, not counted above.
+    raced_steps: int = 0
+    raced_px: float = 0.0
     trials: int = 0
     skipped: int = 0  # no place for a zone the disc was outside of
 
@@ -289,18 +294,23 @@ def zone_in_path(plan: np.ndarray, held: np.ndarray, pusher: np.ndarray, moved: 
     setpoint (its PD law, from its position and the velocity its last step `moved` implies)
     plus what it then carries on by its velocity before a new setpoint can stop it. An overlap
     after that is the filter's fault."""
+    ahead = np.argmin(np.linalg.norm(plan - held, axis=1))
+    for index in range(ahead, len(plan)):
+        centre = np.clip(plan[index], side / 2 + 2, 510 - side / 2)
+        if stops_outside(shapely.Polygon(square(centre, side)), pusher, moved, held):
+            return square(centre, side)
+    return None
+
+
+def stops_outside(shape: shapely.Polygon, pusher: np.ndarray, moved: np.ndarray,
+                  held: np.ndarray) -> bool:
+    """Whether the pusher's disc stays 2 px clear of `shape` over one more step toward `held`
+    and what it then carries on by its velocity (see `zone_in_path`)."""
     state = np.stack([pusher, VELOCITY_PER_PX_MOVED * moved, held])  # (p, v, u) per axis
     path = ONE_STEP[:, 0] @ state  # (substeps, 2)
     carried_on = CARRY * np.linalg.norm(ONE_STEP[-1, 1] @ state)
     swept = shapely.LineString(np.vstack([pusher, path]))
-    clearance = AGENT_RADIUS + 2 + carried_on
-    ahead = np.argmin(np.linalg.norm(plan - held, axis=1))
-    for index in range(ahead, len(plan)):
-        centre = np.clip(plan[index], side / 2 + 2, 510 - side / 2)
-        shape = shapely.Polygon(square(centre, side))
-        if shape.distance(swept) > clearance:
-            return square(centre, side)
-    return None
+    return shape.distance(swept) > AGENT_RADIUS + 2 + carried_on
 
 
 def print_timeline(client: Client, shape: shapely.Polygon, published: float, seed: int,
@@ -392,8 +402,16 @@ def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
                                 *(shape.distance(shapely.Point(*p)) for p in later)])
     depths = [AGENT_RADIUS - shape.distance(shapely.Point(*p))
               for _, _, p in client.pushers[n_pushers:]]
-    result.overlap_steps += sum(depth > 0 for depth in depths)
-    result.overlap_px = max([result.overlap_px, *depths])
+    # Sent before the zone was published, unknown to its placement: one that heads into it
+    # runs into the zone before any answer can.
+    unseen = [s.point for s in after if s.sent < published_wall]
+    raced = any(not stops_outside(shape, pusher, moved, point) for point in unseen)
+    if raced:
+        result.raced_steps += sum(depth > 0 for depth in depths)
+        result.raced_px = max([result.raced_px, *depths])
+    else:
+        result.overlap_steps += sum(depth > 0 for depth in depths)
+        result.overlap_px = max([result.overlap_px, *depths])
     if max(depths, default=0.0) > 0:
         print_timeline(client, shape, published, seed, n_setpoints, n_pushers - 3)
     settled = max(published + 0.3, (first or published) + 1.0 / args.rate_hz)
@@ -537,7 +555,11 @@ def report(name: str, result: Condition, nominal: float) -> None:
           f"{result.inside_after} ({result.inside_zone} in the zone itself; the nearest "
           f"{result.nearest_after:.2f} px from it); steps with the pusher's disc in the zone: "
           f"{result.overlap_steps}" + (f" (deepest {result.overlap_px:.2f} px)"
-                                       if result.overlap_steps else ""))
+                                       if result.overlap_steps else "")
+          + (f"; and {result.raced_steps} (deepest {result.raced_px:.2f} px) in trials whose "
+             f"zone was published across the way of a setpoint already sent (the client had not "
+             f"received it when it placed the zone: a race no filter can win)"
+             if result.raced_steps else ""))
 
 
 def cpu_times() -> np.ndarray:

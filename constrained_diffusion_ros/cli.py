@@ -55,12 +55,26 @@ def run_command(run: Callable[[argparse.Namespace], int], args: argparse.Namespa
 
 
 def add_compute_arguments(parser: argparse.ArgumentParser) -> None:
-    """--device and --threads, alike in every command that runs the network."""
+    """--device, --runtime and --threads, alike in every command that runs the network."""
     parser.add_argument("--device", default="cpu",
                         help="where the network runs: cpu, cuda or cuda:N")
+    parser.add_argument("--runtime", default="torch", choices=["torch", "onnxruntime"],
+                        help="what runs the network: torch, or ONNX Runtime (CPU; faster at "
+                             "batch 1, slower at large batches; scripts/bench_planning.py)")
     parser.add_argument("--threads", type=positive_int, default=os.cpu_count() or 1,
                         help="torch threads (default: this machine's cores; fewer if other "
                              "work runs beside it)")
+
+
+def load_policy_for(args: argparse.Namespace):
+    """The policy of `--model`, on `--device` with `--threads`, its network on `--runtime`
+    (torch, with one log line, where that runtime cannot run it)."""
+    from constrained_diffusion_ros.policy.runtime import use_runtime
+    from constrained_diffusion_ros.policy.weights import load_policy
+
+    policy = load_policy(args.model, use_compute_arguments(args))
+    use_runtime(policy, args.runtime)
+    return policy
 
 
 def use_compute_arguments(args: argparse.Namespace) -> torch.device:

@@ -17,16 +17,15 @@ import torch
 from constrained_diffusion_ros.cli import (
     ArgumentParser,
     add_compute_arguments,
+    load_policy_for,
     positive_int,
     run_command,
-    use_compute_arguments,
 )
 from constrained_diffusion_ros.evaluation.rollout import rollout
 from constrained_diffusion_ros.paths import default_model_dir
 from constrained_diffusion_ros.planning.config import ConstraintConfig
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.policy.schedulers import SPACINGS
-from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 
 
@@ -49,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    policy = load_policy(args.model, use_compute_arguments(args))
+    policy = load_policy_for(args)
     unconstrained = ConstraintConfig("none", sampler=args.sampler,
                                      denoising_steps=args.denoising_steps,
                                      timestep_spacing=args.timestep_spacing)

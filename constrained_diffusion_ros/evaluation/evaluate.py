@@ -20,16 +20,15 @@ from tqdm import tqdm
 from constrained_diffusion_ros.cli import (
     ArgumentParser,
     add_compute_arguments,
+    load_policy_for,
     positive_int,
     run_command,
-    use_compute_arguments,
 )
 from constrained_diffusion_ros.evaluation import report
 from constrained_diffusion_ros.evaluation.configurations import load_evaluated
 from constrained_diffusion_ros.evaluation.runner import CellResult, evaluate_configurations
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
-from constrained_diffusion_ros.policy.weights import load_policy
 
 DEFAULT_FIGURE = ("center_0.2", "r_g10_p_safe")
 
@@ -106,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
     chosen_of = {c.name: [s for s in scenarios if s.paper or c.scenarios == "all"]
                  for c in configs}
     drawn = figure_cell(args, {(s.name, c) for c, chosen in chosen_of.items() for s in chosen})
-    policy = load_policy(args.model, use_compute_arguments(args))
+    policy = load_policy_for(args)
     seeds = list(range(args.first_seed, args.first_seed + args.episodes))
     output = Path(args.output)
     try:

@@ -47,6 +47,7 @@ from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.planning.realtime import RealtimeController
 from constrained_diffusion_ros.planning.robot import RobotModel
 from constrained_diffusion_ros.policy.device import DEVICES
+from constrained_diffusion_ros.policy.runtime import RUNTIMES, use_runtime
 from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones.area import Bounds, RestrictedArea
@@ -103,6 +104,10 @@ PARAMETERS = (
           "half the cores on bigger machines)", read_only=True, low=1, high=256),
     Param("device", "cpu", f"where the network runs: {DEVICES} (the zones stay on the CPU)",
           read_only=True),
+    Param("runtime", "auto", "what runs the network: onnxruntime (CPU, the fastest at batch "
+          "1), torch, or auto: onnxruntime in realtime, torch in lockstep (bit for bit the "
+          "in-process evaluation); where ONNX Runtime cannot run it faithfully, torch, said in "
+          "one log line", read_only=True, choices=("auto", *RUNTIMES)),
     Param("planning_process", True, "realtime: plan in a child process, so planning never "
           "holds the interpreter lock that the clock and zone callbacks need; false: in a "
           "thread (a restricted_area plug-in that cannot be pickled needs it)", read_only=True),
@@ -190,6 +195,10 @@ class PolicyNode(Node):
             workspace=tuple(values["robot.workspace"]),
             pusher_in_observation=PUSHT_ROBOT.pusher_in_observation)
         self.policy = load_policy(values["model"], values["device"])
+        wanted = values["runtime"]
+        if wanted == "auto":
+            wanted = "onnxruntime" if self.mode == "realtime" else "torch"
+        self.runtime = use_runtime(self.policy, wanted)
         self.configurations = load_configurations(values["configurations_file"])
         self.zones = LiveZones(values["max_zones"], values["max_vertices"],
                                plug_in_area(values["restricted_area"],
@@ -261,7 +270,7 @@ class PolicyNode(Node):
             gc.freeze()
         self.get_logger().info(
             f"{self.mode} policy from {self.get_parameter('model').value}, configuration "
-            f"{self.config.name!r}")
+            f"{self.config.name!r}, network on {self.runtime}")
 
     def destroy_node(self) -> None:
         self.zone_ingest.shutdown()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from torch import nn
 
@@ -30,11 +32,22 @@ class DiffusionPolicy(nn.Module):
         self.obs_normalizer = MinMaxNormalizer.from_dict(config.normalizer["obs"])
         self.action_normalizer = MinMaxNormalizer.from_dict(config.normalizer["action"])
         self.train_scheduler = make_scheduler(config, "ddpm")
+        # Where the network runs at inference when not in torch (runtime.py's `use_runtime`):
+        # a callable like `unet`, or None for torch.
+        self.fast: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor] | None \
+            = None
 
     @property
     def device(self) -> torch.device:
         """Where the network's weights are (the CPU unless moved)."""
         return next(self.unet.parameters()).device
+
+    def denoise(self, sample: torch.Tensor, timestep: torch.Tensor,
+                cond: torch.Tensor) -> torch.Tensor:
+        """The predicted noise at inference: the U-Net, on the runtime chosen for it."""
+        if self.fast is None:
+            return self.unet(sample, timestep, cond)
+        return self.fast(sample, timestep, cond)
 
     def condition(self, obs_history: torch.Tensor) -> torch.Tensor:
         """(B, n_obs_steps, obs_dim) raw observations -> (B, global_cond_dim) network condition."""

@@ -106,7 +106,7 @@ class DenoisingSampler:
             if self._interrupt is not None and self._interrupt():
                 raise Interrupted(f"stopped before denoising step {index + 1} of "
                                   f"{len(timesteps)}")
-            noise = self.policy.unet(sample, timestep.to(device), cond)
+            noise = self.policy.denoise(sample, timestep.to(device), cond)
             sample = self.scheduler.step(noise, timestep, sample, generator=generator,
                                          **self.step_options).prev_sample
             if hooks:

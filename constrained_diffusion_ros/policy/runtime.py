@@ -1,0 +1,124 @@
+"""Where the denoising network runs at inference: torch, or ONNX Runtime.
+
+A robot plans one chunk at a time, and at batch 1 a forward of the U-Net in torch's eager mode
+is mostly the overhead of dispatching its few hundred small operations. ONNX Runtime runs the
+same network, exported from the loaded weights, with much less of it
+(`scripts/bench_planning.py` measures both). The graph is exported at load, in memory, and
+checked against torch on probe inputs before it is used: a runtime that is missing, cannot run
+the network, or disagrees with torch by more than TOLERANCE is not used, and one log line says
+why (never silently).
+
+The exported graph travels with the policy (a planning process gets it pickled with the
+weights); each process opens its own session on first use, with as many threads as torch has
+there.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import warnings
+from typing import Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
+
+Runtime = Literal["torch", "onnxruntime"]
+RUNTIMES: tuple[Runtime, ...] = ("torch", "onnxruntime")
+TOLERANCE = 1e-4  # max abs difference from torch on the probes, in the network's output
+OPSET = 17
+LOGGER = logging.getLogger(__name__)
+
+
+class OnnxDenoiser:
+    """The U-Net as an ONNX Runtime session: (sample, timestep, cond) -> noise, as torch."""
+
+    def __init__(self, graph: bytes) -> None:
+        self.graph = graph
+        self._session = None
+
+    def __getstate__(self) -> dict:
+        return {"graph": self.graph}  # a session is per process: opened again on first use
+
+    def __setstate__(self, state: dict) -> None:
+        self.graph, self._session = state["graph"], None
+
+    def __call__(self, sample: Tensor, timestep: Tensor, cond: Tensor) -> Tensor:
+        if self._session is None:
+            self._session = open_session(self.graph, torch.get_num_threads())
+        feed = {"sample": sample.detach().cpu().numpy().astype(np.float32, copy=False),
+                "timestep": np.asarray(timestep.detach().cpu(), dtype=np.int64).reshape(1),
+                "cond": cond.detach().cpu().numpy().astype(np.float32, copy=False)}
+        return torch.from_numpy(self._session.run(None, feed)[0])
+
+
+def open_session(graph: bytes, threads: int):
+    import onnxruntime
+
+    options = onnxruntime.SessionOptions()
+    options.intra_op_num_threads, options.inter_op_num_threads = threads, 1
+    options.graph_optimization_level = onnxruntime.GraphOptimizationLevel.ORT_ENABLE_ALL
+    options.log_severity_level = 3  # errors only: ORT's own warnings are not ours to print
+    return onnxruntime.InferenceSession(graph, options, providers=["CPUExecutionProvider"])
+
+
+def export_onnx(policy: DiffusionPolicy) -> bytes:
+    """The policy's U-Net as an ONNX graph (batch dimension free)."""
+    config = policy.config
+    sample = torch.zeros(1, config.horizon, config.action_dim)
+    cond = torch.zeros(1, config.global_cond_dim)
+    buffer = io.BytesIO()
+    batch = {0: "batch"}
+    with warnings.catch_warnings():  # the exporter's notes on its own deprecation
+        warnings.simplefilter("ignore")
+        torch.onnx.export(policy.unet, (sample, torch.tensor([0]), cond), buffer,
+                          input_names=["sample", "timestep", "cond"], output_names=["noise"],
+                          dynamic_axes={"sample": batch, "cond": batch, "noise": batch},
+                          opset_version=OPSET, dynamo=False)
+    return buffer.getvalue()
+
+
+def disagreement(policy: DiffusionPolicy, denoiser: OnnxDenoiser, seed: int = 0) -> float:
+    """Max abs difference between `denoiser` and torch over probe inputs: batches of 1 and 3,
+    the first and last timesteps and one between."""
+    config, generator = policy.config, torch.Generator().manual_seed(seed)
+    worst = 0.0
+    for batch in (1, 3):
+        for step in (0, config.num_train_timesteps // 2, config.num_train_timesteps - 1):
+            sample = torch.randn(batch, config.horizon, config.action_dim, generator=generator)
+            cond = torch.rand(batch, config.global_cond_dim, generator=generator) * 2 - 1
+            timestep = torch.tensor(step)
+            with torch.inference_mode():
+                expected = policy.unet(sample, timestep, cond)
+            worst = max(worst, float((denoiser(sample, timestep, cond) - expected).abs().max()))
+    return worst
+
+
+def use_runtime(policy: DiffusionPolicy, runtime: Runtime) -> Runtime:
+    """Runs `policy`'s network on `runtime` from now on; returns the runtime in use, which is
+    torch (with one warning in the log) where the one asked for cannot run it faithfully."""
+    if runtime not in RUNTIMES:
+        raise ValueError(f"runtime must be one of {RUNTIMES}, got {runtime!r}")
+    policy.fast = None
+    if runtime == "torch":
+        return "torch"
+    if policy.device.type != "cpu":
+        LOGGER.warning("runtime onnxruntime runs on the CPU only; the network stays on torch "
+                       "(%s)", policy.device)
+        return "torch"
+    try:
+        denoiser = OnnxDenoiser(export_onnx(policy))
+        worst = disagreement(policy, denoiser)
+    except Exception as error:  # a missing package, an operator it cannot export or run
+        LOGGER.warning("runtime onnxruntime cannot run this network (%s: %s); using torch",
+                       type(error).__name__, str(error).splitlines()[0] if str(error) else "")
+        return "torch"
+    if not worst <= TOLERANCE:
+        LOGGER.warning("runtime onnxruntime differs from torch by %.2g (over %g); using torch",
+                       worst, TOLERANCE)
+        return "torch"
+    policy.fast = denoiser
+    return "onnxruntime"

@@ -1,0 +1,147 @@
+"""Benchmark planning at batch 1 against the network's runtimes, all in one run.
+
+For each torch thread count asked for (`--threads`, default 1 and 2) and each runtime (torch
+eager; ONNX Runtime; with `--compile`, `torch.compile` where a C++ compiler is present), it
+prints, each also as a ratio to torch eager in the same run:
+  - one U-Net forward at batch 1 and at batch 25 (median of `--forwards`);
+  - one plan at batch 1 with the body-safe hooks: DDIM 10 (`ddim10_r_g10_p_safe`) and DDPM 100
+    (`r_g10_p_safe`), median of `--plans`, in a scene with the paper's 0.2 centre zone;
+  - the hooks' share of a DDIM plan: 1 - (the same sampler without hooks) / (with them).
+Every fast path is first checked against torch on the same inputs (max abs difference of a
+forward). The shipped policy; run it on an idle machine. Prints; asserts nothing.
+
+  OMP_NUM_THREADS=1 .venv/bin/python scripts/bench_planning.py
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import statistics
+import sys
+import time
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
+from constrained_diffusion_ros.paths import config_dir, default_model_dir
+from constrained_diffusion_ros.planning.config import load_configurations
+from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
+from constrained_diffusion_ros.policy import runtime
+from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
+from constrained_diffusion_ros.policy.weights import load_policy
+from constrained_diffusion_ros.pusht import PUSHT_ROBOT
+from sim_bridge.scene import block_keypoints, observation, seeded_state
+
+PLANS = {"DDIM 10 body-safe": "ddim10_r_g10_p_safe", "DDPM 100 body-safe": "r_g10_p_safe"}
+UNHOOKED = "ddim10_none"  # the DDIM sampler with no hooks: what the hooks add is the rest
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--model", default=str(default_model_dir()), help="policy directory")
+    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2],
+                        help="torch (and ONNX Runtime) thread counts to measure at")
+    parser.add_argument("--forwards", type=int, default=200, help="forwards timed per cell")
+    parser.add_argument("--plans", type=int, default=15, help="DDIM plans timed per cell "
+                        "(DDPM: a third as many, at least 3)")
+    parser.add_argument("--compile", action="store_true",
+                        help="also torch.compile (inductor; compiling takes tens of seconds)")
+    return parser
+
+
+def median_ms(call: Callable[[], object], count: int, warm: int = 3) -> float:
+    for _ in range(warm):
+        call()
+    times = []
+    for _ in range(count):
+        started = time.perf_counter()
+        call()
+        times.append(time.perf_counter() - started)
+    return 1000 * statistics.median(times)
+
+
+def scene_observation(seed: int = 100000) -> torch.Tensor:
+    """(1, 2, obs_dim) the history of a seeded scene's first observation."""
+    state = seeded_state(seed)
+    obs = observation(block_keypoints(state[None, 2:])[0], state[:2])
+    return torch.from_numpy(np.repeat(obs[None, None], 2, axis=1).astype(np.float32))
+
+
+def compiled_denoiser(policy: DiffusionPolicy):
+    """torch.compile's U-Net, or a reason it cannot be had here."""
+    if shutil.which("c++") is None and shutil.which("g++") is None:
+        return "no C++ compiler: inductor cannot build kernels here"
+    try:
+        return torch.compile(policy.unet, mode="max-autotune-no-cudagraphs")
+    except Exception as error:  # a report, not a crash
+        return f"{type(error).__name__}: {error}"
+
+
+@torch.inference_mode()
+def measure(policy: DiffusionPolicy, configs: dict, history: torch.Tensor, zones,
+            args: argparse.Namespace, name: str) -> dict[str, float]:
+    """ms per cell for the runtime set on `policy` (its `fast`, None: torch eager)."""
+    config, cells = policy.config, {}
+    for batch in (1, 25):
+        sample = torch.randn(batch, config.horizon, config.action_dim)
+        cond = torch.rand(batch, config.global_cond_dim) * 2 - 1
+        timestep = torch.tensor(50)
+        if policy.fast is not None and batch == 1:
+            worst = float((policy.denoise(sample, timestep, cond)
+                           - policy.unet(sample, timestep, cond)).abs().max())
+            print(f"  {name}: max abs difference from torch in a forward {worst:.1e}")
+        cells[f"forward, batch {batch}"] = median_ms(
+            lambda s=sample, t=timestep, c=cond: policy.denoise(s, t, c), args.forwards)
+    for label, key in {**PLANS, "DDIM 10 no hooks": UNHOOKED}.items():
+        planner = ConstrainedPlanner(policy, configs[key], PUSHT_ROBOT)
+        generator = torch.Generator().manual_seed(0)
+        count = args.plans if "DDIM" in label else max(3, args.plans // 3)
+        cells[f"plan, {label}"] = median_ms(
+            lambda p=planner, g=generator: p.plan(history, zones, None, g), count, warm=1)
+    return cells
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    policy = load_policy(args.model)
+    configs = load_configurations(config_dir() / "configurations.yaml")
+    zones = load_scenarios(config_dir() / "scenarios.yaml")["center_0.2"].zones_at(0)
+    history = scene_observation()
+    print(f"planning benchmark: {args.model}; torch {torch.__version__}; a scene with the 0.2 "
+          f"centre zone; medians")
+    for threads in args.threads:
+        torch.set_num_threads(threads)
+        variants: dict[str, object] = {"torch eager": None}
+        runtime.use_runtime(policy, "torch")
+        chosen = runtime.use_runtime(policy, "onnxruntime")
+        variants["onnxruntime"] = policy.fast if chosen == "onnxruntime" else \
+            "fell back to torch (see the log line above)"
+        runtime.use_runtime(policy, "torch")
+        if args.compile:
+            variants["torch.compile"] = compiled_denoiser(policy)
+        print(f"\n== {threads} thread(s) ==")
+        base: dict[str, float] = {}
+        for name, fast in variants.items():
+            if isinstance(fast, str):
+                print(f"  {name}: not measured ({fast})")
+                continue
+            policy.fast = fast
+            try:
+                cells = measure(policy, configs, history, zones, args, name)
+            finally:
+                policy.fast = None
+            for label, ms in cells.items():
+                ratio = "" if name == "torch eager" else f"  ({ms / base[label]:.2f} x torch)"
+                base.setdefault(label, ms)
+                print(f"  {name:12s} {label:32s} {ms:8.2f} ms{ratio}")
+            share = 1 - cells["plan, DDIM 10 no hooks"] / cells["plan, DDIM 10 body-safe"]
+            print(f"  {name:12s} {'hooks share, DDIM 10 body-safe':32s} {100 * share:7.0f} %")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,88 @@
+"""The network's runtimes: ONNX Runtime gives torch's forwards, and a runtime that cannot run
+the network falls back to torch with one log line."""
+
+from __future__ import annotations
+
+import logging
+import pickle
+
+import pytest
+import torch
+
+from constrained_diffusion_ros.paths import default_model_dir
+from constrained_diffusion_ros.planning.config import ConstraintConfig
+from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
+from constrained_diffusion_ros.policy import runtime
+from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
+from constrained_diffusion_ros.policy.weights import load_policy
+from constrained_diffusion_ros.pusht import PUSHT_ROBOT
+from constrained_diffusion_ros.zones import ZoneSet, rectangle
+
+
+@pytest.fixture(scope="module")
+def shipped() -> DiffusionPolicy:
+    return load_policy(default_model_dir())
+
+
+def test_every_forward_of_a_body_safe_plan_agrees_with_torch(shipped: DiffusionPolicy) -> None:
+    """A DDIM 10 plan with the body-safe hooks, at batch 1 and 4: at each denoising step the
+    ONNX Runtime forward equals torch's on the same input to TOLERANCE."""
+    assert runtime.use_runtime(shipped, "onnxruntime") == "onnxruntime"
+    fast, worst, calls = shipped.fast, [0.0], [0]
+
+    def compared(sample: torch.Tensor, timestep: torch.Tensor, cond: torch.Tensor):
+        out = fast(sample, timestep, cond)
+        expected = shipped.unet(sample, timestep, cond)
+        worst[0] = max(worst[0], float((out - expected).abs().max()))
+        calls[0] += 1
+        return out
+
+    config = ConstraintConfig(name="safe", sampler="ddim", denoising_steps=10, resample=True,
+                              push=10, project=True, inflate=True, path_repair=True,
+                              shield=True)
+    planner = ConstrainedPlanner(shipped, config, PUSHT_ROBOT)
+    zones = ZoneSet.from_polygons([rectangle(200, 200, 260, 260)])
+    try:
+        shipped.fast = compared
+        for batch in (1, 4):
+            observations = torch.rand(batch, 2, shipped.config.obs_dim) * 400 + 50
+            chunks = planner.plan(observations, zones, None, torch.Generator().manual_seed(3))
+            assert chunks.shape == (batch, shipped.config.horizon, 2)
+            assert torch.isfinite(chunks).all()
+    finally:
+        runtime.use_runtime(shipped, "torch")
+    assert calls[0] >= 20  # every forward of both plans went through the check
+    assert worst[0] <= runtime.TOLERANCE
+
+
+def test_the_graph_travels_with_the_policy_and_opens_again(shipped: DiffusionPolicy) -> None:
+    """A planning process gets the policy pickled: the session is opened there again."""
+    try:
+        assert runtime.use_runtime(shipped, "onnxruntime") == "onnxruntime"
+        copy = pickle.loads(pickle.dumps(shipped))
+        assert isinstance(copy.fast, runtime.OnnxDenoiser)
+        assert runtime.disagreement(copy, copy.fast, seed=5) <= runtime.TOLERANCE
+    finally:
+        runtime.use_runtime(shipped, "torch")
+
+
+@pytest.mark.parametrize("fault", ["cannot export", "disagrees"])
+def test_a_runtime_that_cannot_run_the_network_falls_back_to_torch_saying_so(
+        shipped: DiffusionPolicy, fault: str, monkeypatch: pytest.MonkeyPatch,
+        caplog: pytest.LogCaptureFixture) -> None:
+    if fault == "cannot export":
+        def broken(_policy):
+            raise RuntimeError("Unsupported: ONNX export of operator mish\nmore detail")
+        monkeypatch.setattr(runtime, "export_onnx", broken)
+    else:
+        monkeypatch.setattr(runtime, "disagreement", lambda *_args, **_kw: 0.5)
+    with caplog.at_level(logging.WARNING, logger=runtime.__name__):
+        assert runtime.use_runtime(shipped, "onnxruntime") == "torch"
+    assert shipped.fast is None
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 1 and "using torch" in lines[0] and "\n" not in lines[0]
+
+
+def test_an_unknown_runtime_is_refused(shipped: DiffusionPolicy) -> None:
+    with pytest.raises(ValueError, match="runtime must be one of"):
+        runtime.use_runtime(shipped, "tensorrt")

@@ -260,10 +260,11 @@ def test_the_sliding_shield_never_lets_the_disc_into_the_grown_zone_within_the_h
     assert INFLATED.signed_distance(path).min() >= shield.margin - 1e-3
 
 
-def drive_with_late_setpoints(seed: int, late: bool) -> float:
-    """A pusher sent straight past a random square post by noisy setpoints, 3 in 10 of
-    which reach the robot after its tick (the one in force runs one more step, and the late
-    one is overtaken if the next arrives on time), as on a busy machine. Returns the
+def drive_past_a_post(seed: int, answer) -> float:
+    """A pusher sent straight past a random square post. `answer(rng, area, position, step,
+    start, goal)` gives the setpoints sent for an observation, newest last, and how many of
+    them reach the robot before its tick (the newest of those is in force; if any come after
+    it, the newest takes over a step late, unless the next step's arrive on time). Returns the
     disc's least clearance of the post (negative: it entered)."""
     rng = np.random.default_rng(seed)
     centre, size = rng.uniform(200, 312, 2), rng.uniform(20, 60)
@@ -271,23 +272,36 @@ def drive_with_late_setpoints(seed: int, late: bool) -> float:
     angle = rng.uniform(0, 2 * np.pi)
     start = centre + 150 * np.array([np.cos(angle), np.sin(angle)])
     goal = 2 * centre - start + rng.normal(0, 10, 2)
-    wanted = [start + (goal - start) * min(1, (t + 1) / 10) + rng.normal(0, 5, 2)
-              for t in range(20)]
-    arrives_late = rng.random(20) < 0.3
-    sim, shield = PushTSim(), PusherShield(PUSHT_ROBOT, late=late)
+    sim = PushTSim()
     sim.set_state([*start, 30.0, 30.0, 0.0])
     in_force, pending, visited = start, None, []
     for step in range(20):
         position = sim.state[None, :2].astype(np.float32).astype(float)
         if pending is not None:  # it arrived during the last step
             in_force, pending = pending, None
-        target = shield(post.inflate(AGENT_RADIUS), position, wanted[step][None], step)[0]
-        if arrives_late[step]:
-            pending = target
-        else:
-            in_force = target
+        sent, on_time = answer(rng, post.inflate(AGENT_RADIUS), position, step, start, goal)
+        if on_time:
+            in_force = sent[on_time - 1]
+        if on_time < len(sent):
+            pending = sent[-1]
         visited.append(sim.step(in_force)[:2])
     return float(post.signed_distance(torch.from_numpy(np.array(visited))).min()) - AGENT_RADIUS
+
+
+def drive_with_late_setpoints(seed: int, late: bool) -> float:
+    """Noisy setpoints along the way past the post, 3 in 10 of which reach the robot after
+    its tick, as on a busy machine."""
+    shield, plan = PusherShield(PUSHT_ROBOT, late=late), {}
+
+    def answer(rng, area, position, step, start, goal):
+        if step == 0:
+            plan["wanted"] = [start + (goal - start) * min(1, (t + 1) / 10)
+                              + rng.normal(0, 5, 2) for t in range(20)]
+            plan["late"] = rng.random(20) < 0.3
+        target = shield(area, position, plan["wanted"][step][None], step)[0]
+        return [target], 0 if plan["late"][step] else 1
+
+    return drive_past_a_post(seed, answer)
 
 
 @pytest.mark.parametrize("seed", [38, 344, 420])
@@ -349,35 +363,18 @@ def test_when_nothing_is_safe_a_step_late_the_shield_still_keeps_the_on_time_pat
 
 
 def drive_with_answers_that_race_the_tick(seed: int) -> float:
-    """A pusher sent past a random square post, as a real-time node drives it: each
-    observation gets one to three answers (the setpoint from the observation, then others as
-    plans arrive or zones change), and any number of them reach the robot before its tick,
-    the rest after it (the newest then takes over a step late). Returns the disc's least
-    clearance of the post (negative: it entered)."""
-    rng = np.random.default_rng(seed)
-    centre, size = rng.uniform(200, 312, 2), rng.uniform(20, 60)
-    post = ZoneSet.from_polygons([rectangle(*(centre - size / 2), *(centre + size / 2))])
-    angle = rng.uniform(0, 2 * np.pi)
-    start = centre + 150 * np.array([np.cos(angle), np.sin(angle)])
-    goal = 2 * centre - start + rng.normal(0, 10, 2)
-    sim, shield = PushTSim(), PusherShield(PUSHT_ROBOT)
-    sim.set_state([*start, 30.0, 30.0, 0.0])
-    in_force, pending, visited = start, None, []
-    for step in range(20):
-        position = sim.state[None, :2].astype(np.float32).astype(float)
-        if pending is not None:  # it arrived during the last step
-            in_force, pending = pending, None
+    """As a real-time node drives the pusher past the post: each observation gets one to
+    three answers (the setpoint from the observation, then others as plans arrive or zones
+    change), and any number of them reach the robot before its tick."""
+    shield = PusherShield(PUSHT_ROBOT)
+
+    def answer(rng, area, position, step, start, goal):
         wanted = start + (goal - start) * min(1, (step + 1) / 10)
-        answers = [shield(post.inflate(AGENT_RADIUS), position,
-                          (wanted + rng.normal(0, 5 if k == 0 else 40, 2))[None], step)[0]
-                   for k in range(rng.integers(1, 4))]
-        on_time = rng.integers(0, len(answers) + 1)
-        if on_time:
-            in_force = answers[on_time - 1]
-        if on_time < len(answers):
-            pending = answers[-1]
-        visited.append(sim.step(in_force)[:2])
-    return float(post.signed_distance(torch.from_numpy(np.array(visited))).min()) - AGENT_RADIUS
+        sent = [shield(area, position, (wanted + rng.normal(0, 5 if k == 0 else 40, 2))[None],
+                       step)[0] for k in range(rng.integers(1, 4))]
+        return sent, rng.integers(0, len(sent) + 1)
+
+    return drive_past_a_post(seed, answer)
 
 
 @pytest.mark.parametrize("seed", [5, 34, 41, 113, 251])

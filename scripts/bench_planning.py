@@ -76,9 +76,10 @@ def compiled_denoiser(policy: DiffusionPolicy):
     if shutil.which("c++") is None and shutil.which("g++") is None:
         return "no C++ compiler: inductor cannot build kernels here"
     try:
-        return torch.compile(policy.unet, mode="max-autotune-no-cudagraphs")
+        compiled = torch.compile(policy.unet, mode="max-autotune-no-cudagraphs")
     except Exception as error:  # a report, not a crash
         return f"{type(error).__name__}: {error}"
+    return lambda sample, timestep, cond: compiled(sample, timestep, cond)  # not a submodule
 
 
 @torch.inference_mode()

@@ -178,9 +178,9 @@ class PusherShield:
         """(N, F) whether holding candidate (N, F, 2) keeps a pusher at p moving at v clear of
         the area: after every physics substep of the horizon, and at the candidate itself
         (or at the points of `path`, a subset of them: a quick test that can only refuse).
-        With `held` (N, 2), the setpoint in force, and `late`, also if the candidate takes
-        over one control step later (it reached the robot after its tick), with each of the
-        setpoints in `held` (N, K, 2) that may be in force meanwhile."""
+        With `held` (N, K, 2) (or (N, 2)), the setpoints that may be in force, and `late`,
+        also if the candidate takes over one control step later (it reached the robot after
+        its tick), after a step of each of them."""
         a, b, c = (self.path if path is None else path).unbind(-1)
         if held is not None and self.one_step is not None:
             if held.dim() == 2:

@@ -149,12 +149,8 @@ class PusherShield:
         p, v = torch.from_numpy(position), torch.from_numpy(velocity)
         # (B, K, 2) the setpoints that may be in force, newest last
         start, goal = torch.from_numpy(held).transpose(0, 1), torch.from_numpy(setpoint)
-        # Only pushers that could reach the area within the horizon need their paths checked:
-        # the path leaves p by at most c_max |u - p| + b_max |v| (p_k - p = c_k (u - p) + b_k v).
-        farthest = (start - p[:, None]).norm(dim=-1).amax(dim=1)
-        reach = (self.reach[0] * torch.maximum((goal - p).norm(dim=-1), farthest)
-                 + self.reach[1] * v.norm(dim=-1))
-        near = torch.nonzero(area.signed_distance(p.float()) < reach + self.clearance).flatten()
+        near = torch.nonzero(area.signed_distance(p.float())
+                             < self._reach(p, v, start, goal) + self.clearance).flatten()
         chosen = goal.clone()
         if len(near):
             chosen[near] = self._choose(area.select_rows(near), p[near], v[near], start[near],
@@ -163,6 +159,22 @@ class PusherShield:
         self.corrected += int((chosen != goal).any(dim=-1).sum())
         self._remember(step, position, result, velocity, held[-1])
         return result
+
+    def _reach(self, p: Tensor, v: Tensor, held: Tensor, goal: Tensor) -> Tensor:
+        """(B,) how far from p the paths toward `goal` can go: only pushers that could reach
+        the area need their paths checked. A path leaves its start p by at most
+        c_max |u - p| + b_max |v| (p_k - p = c_k (u - p) + b_k v); a late one starts where a
+        step of a setpoint in `held` (B, K, 2) took it, so its bound adds that step."""
+        reach = self.reach[0] * (goal - p).norm(dim=-1) + self.reach[1] * v.norm(dim=-1)
+        if self.one_step is None:
+            return reach
+        (p_p, p_v, p_u), (v_p, v_v, v_u) = self.one_step
+        late_p = p_p * p[:, None] + p_v * v[:, None] + p_u * held
+        late_v = v_p * p[:, None] + v_v * v[:, None] + v_u * held
+        late = ((late_p - p[:, None]).norm(dim=-1)
+                + self.reach[0] * (goal[:, None] - late_p).norm(dim=-1)
+                + self.reach[1] * late_v.norm(dim=-1)).amax(dim=1)
+        return torch.maximum(reach, late)
 
     def _remember(self, step: int, position: np.ndarray, setpoint: np.ndarray,
                   velocity: np.ndarray, held: np.ndarray) -> None:

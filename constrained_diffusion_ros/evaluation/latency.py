@@ -125,7 +125,10 @@ def markdown(rows: list[dict], args: argparse.Namespace) -> str:
         "steps that passed. async_prefix: async with the committed waypoints inpainted into "
         "the new chunk (4 soft ones after them). Jump: mean distance between consecutive "
         "setpoints where a new chunk takes over; step: the same within a chunk (px). r counts "
-        "setpoints inside a zone, r_body steps with the pusher's disc overlapping one.",
+        "setpoints inside a zone, r_body steps with the pusher's disc overlapping one. The "
+        "lockstep executor runs it, over the action queue, replan rule and observation history "
+        "that the live controller uses too (planning/action_queue.py); live, plans arrive when "
+        "the planning process is done rather than after d steps.",
         "",
         "| configuration | scenario | d | handover | s | r | r_body | jump px | step px |",
         "|---|---|---|---|---|---|---|---|---|",

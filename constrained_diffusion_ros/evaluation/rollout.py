@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from constrained_diffusion_ros.planning.executor import ChunkExecutor, ZoneSource
+from constrained_diffusion_ros.planning.lockstep import LockstepLoop, ZoneSource
 from constrained_diffusion_ros.planning.planners import ChunkPlanner
 from sim_bridge import SUCCESS_THRESHOLD, PushTBatch, score_from_coverage
 
@@ -54,11 +54,11 @@ def rollout(planner: ChunkPlanner, seeds: Sequence[int], n_steps: int = 200,
             progress: bool = False, description: str = "rollout", delay: int = 0,
             handover: str = "sync") -> RolloutLog:
     """Runs every seeded scene for `n_steps` control steps, all episodes in one batch, through
-    the same chunk executor as the policy node; plans are ready `delay` steps after they are
-    asked for (see `ChunkExecutor`)."""
+    the same lockstep loop as the policy node; plans are ready `delay` steps after they are
+    asked for (see `LockstepLoop`)."""
     sims = PushTBatch(len(seeds))
     states = [sims.reset(list(seeds))]
-    executor = ChunkExecutor(planner, zones, generator, delay, handover)
+    executor = LockstepLoop(planner, zones, generator, delay, handover)
     commanded, coverages, executed_chunk, wanted = [], [], [], []
     with tqdm(total=n_steps, desc=description, unit="step", disable=not progress,
               leave=False) as bar:

@@ -36,8 +36,8 @@ from constrained_diffusion_ros.nodes.zone_ingest import ZoneIngest
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.planning.clock import ControlClock
 from constrained_diffusion_ros.planning.config import load_configurations, safe_yaml
-from constrained_diffusion_ros.planning.executor import ChunkExecutor
 from constrained_diffusion_ros.planning.liveness import StandstillMeter
+from constrained_diffusion_ros.planning.lockstep import LockstepLoop
 from constrained_diffusion_ros.planning.os_scheduling import (
     CLOCK_PRIORITY,
     EXECUTOR_PRIORITY,
@@ -295,7 +295,7 @@ class PolicyNode(Node):
                              f"{', '.join(self.configurations)}")
         self.config = self.configurations[name]
         self.planner = ConstrainedPlanner(self.policy, self.config, self.robot)
-        self.chunk_executor = ChunkExecutor(self.planner, self.zones, self.generator)
+        self.lockstep_loop = LockstepLoop(self.planner, self.zones, self.generator)
         if self.controller is not None:
             self.controller.use_planner(self.planner)
 
@@ -344,18 +344,18 @@ class PolicyNode(Node):
             return
         observation = self._take_observation(stamp)
         if stamp < self.last_stamp or stamp == 0.0:  # the simulator was reset: a new episode
-            self.chunk_executor.reset(self.noise_seed)
+            self.lockstep_loop.reset(self.noise_seed)
         self.last_stamp = stamp
         if observation is None:
             self._refused_observation_answer(stamp_msg)
             return
         step = step_of_stamp(stamp_msg, self.robot.control_hz)
         started = time.perf_counter()
-        setpoint = self.chunk_executor.act(observation[None].astype(np.float32), step)[0]
+        setpoint = self.lockstep_loop.act(observation[None].astype(np.float32), step)[0]
         planning_ms = 1000 * (time.perf_counter() - started)
         self._send(setpoint, stamp_msg)
-        if self.chunk_executor.last_plan is not None:
-            self._after_plan(self.chunk_executor.last_plan.chunks[0])
+        if self.lockstep_loop.last_plan is not None:
+            self._after_plan(self.lockstep_loop.last_plan.chunks[0])
         self._publish_status(planning_ms)
 
     def _take_observation(self, stamp: float) -> np.ndarray | None:
@@ -488,7 +488,7 @@ class PolicyNode(Node):
                   "standstill_steps": self.standstills.steps,
                   "standstill_longest_s": f"{self.standstills.longest / self.robot.control_hz:.1f}",
                   "standstill_waiting_steps": self.standstills_waiting.steps,
-                  "plans": self.chunk_executor.stats.planner_calls,
+                  "plans": self.lockstep_loop.stats.planner_calls,
                   "planning_ms": f"{planning_ms:.1f}",
                   "replan_latency_ms": f"{self.replan_latency_ms:.1f}",
                   "zone_to_setpoint_ms": f"{self.zone_to_setpoint_ms:.1f}",

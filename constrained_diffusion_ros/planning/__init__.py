@@ -1,6 +1,6 @@
 """What turns observations and zones into setpoints, shared by the policy node and the
 evaluation: constraint configurations (`config`), the robot model (`robot`), planners
-(`planners`), the shield (`shield`) and the chunk executor (`executor`), which executes chunks
+(`planners`), the shield (`shield`) and the lockstep loop (`lockstep`), which executes chunks
 from an action queue (`action_queue`).
 
 The real-time mode adds a controller (`realtime`) fed by a control clock (`clock`), whose plans

@@ -1,5 +1,5 @@
 """The action queue of real-time chunking: waypoints indexed by control step, free of threads,
-with what the evaluation's executor and the live controller share: the replan rule, the rule
+with what the lockstep loop and the live controller share: the replan rule, the rule
 for a chunk used up, and the observation history.
 
 A chunk planned from the observation of step t puts its executed waypoint j (chunk index
@@ -7,7 +7,7 @@ A chunk planned from the observation of step t puts its executed waypoint j (chu
 waypoints whose time has passed are skipped (as LeRobot's asynchronous action queue merges
 chunks). While a plan is being made, the waypoints that will execute before it arrives are
 already decided; the next chunk is denoised with them held fixed (`committed_prefix`), so the
-handover does not jump. The chunk executor (executor.py) uses it in lockstep, the real-time
+handover does not jump. The lockstep loop (lockstep.py) uses it in lockstep, the real-time
 controller (realtime.py) on a clock.
 """
 
@@ -104,7 +104,7 @@ class ActionQueue:
         """(R,) whether a waypoint of the rows' chunks still to execute from step `step` on is
         one that `refused` ((R, N, 2) -> (R, N) bool) refuses. With the planner's `violates`
         (where its plans keep waypoints out of now) it is the one replan rule, that the
-        evaluation's executor and the live controller share: replan when zones came onto the
+        lockstep loop and the live controller share: replan when zones came onto the
         rest of the chunk."""
         rows = np.asarray(rows)
         remaining = self.remaining(step)[rows]

@@ -1,9 +1,9 @@
 """Planners: a constraint configuration applied to a policy, for the node and the evaluation.
 
 A planner turns observation histories and the zones in force into constrained action chunks,
-names the area its chunks keep their waypoints out of (so the executor can tell when new zones
+names the area its chunks keep their waypoints out of (so a planning loop can tell when new zones
 invalidate a chunk), and, with the shield, has the last word on each executed setpoint. The
-executor drives any planner through these three methods (`ChunkPlanner`), for some rows of its
+loop drives any planner through these three methods (`ChunkPlanner`), for some rows of its
 batch of episodes.
 """
 
@@ -37,7 +37,7 @@ from constrained_diffusion_ros.zones.area import RestrictedArea
 
 
 class ChunkPlanner(Protocol):
-    """What the chunk executor needs. `zones` answer for the rows asked about (a batch-aware
+    """What the lockstep loop needs. `zones` answer for the rows asked about (a batch-aware
     area, or one area for all), or are None when no zone is in force."""
 
     robot: RobotModel  # where the pusher is in an observation, for holding it still

@@ -7,7 +7,7 @@ waypoints that will execute before it arrives held fixed (`committed_prefix`), s
 does not jump. The plans are made by a worker (plan_jobs.py's `PlanWorker`): the policy node's
 is a `PlanningProcess` (planning_process.py), and its setpoints go out on a `ControlClock`
 thread (clock.py); the latency evaluation runs the same queue in lockstep with a chosen delay
-(executor.py).
+(lockstep.py).
 """
 
 from __future__ import annotations

@@ -95,7 +95,7 @@ def test_the_package_imports_run_one_way_without_circles() -> None:
     graph = import_graph(REPO)
     assert len(graph) > 40
     assert "constrained_diffusion_ros.planning.planners" in graph[
-        "constrained_diffusion_ros.planning.executor"]
+        "constrained_diffusion_ros.planning.lockstep"]
     assert violations(graph) == []
 
 

@@ -21,12 +21,12 @@ import numpy as np
 import pytest
 import torch
 from samples import chunk_of_rows
-from test_executor import CONFIG, Scripted
+from test_lockstep import CONFIG, Scripted
 
 from constrained_diffusion_ros.planning.action_queue import ActionQueue, committed_prefix
 from constrained_diffusion_ros.planning.clock import ControlClock
 from constrained_diffusion_ros.planning.config import ConstraintConfig
-from constrained_diffusion_ros.planning.executor import ChunkExecutor
+from constrained_diffusion_ros.planning.lockstep import LockstepLoop
 from constrained_diffusion_ros.planning.os_scheduling import (
     STARVED_SHARE,
     CpuShare,
@@ -521,7 +521,7 @@ def observations_at(step: int, batch: int = 2) -> np.ndarray:
     return np.full((batch, CONFIG.obs_dim), float(step), dtype=np.float32)
 
 
-def run(executor: ChunkExecutor, steps: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+def run(executor: LockstepLoop, steps: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
     actions, handovers = [], []
     for step in range(steps):
         actions.append(executor.act(observations_at(step), step))
@@ -531,7 +531,7 @@ def run(executor: ChunkExecutor, steps: int) -> tuple[list[np.ndarray], list[np.
 
 def test_async_plans_ahead_and_skips_the_steps_that_passed_while_it_planned() -> None:
     planner = Scripted()
-    actions, handovers = run(ChunkExecutor(planner, delay=2, handover="async"), 20)
+    actions, handovers = run(LockstepLoop(planner, delay=2, handover="async"), 20)
     # Asked at step 0 (nothing to execute: hold), ready at 2 with waypoints 0, 1 skipped; each
     # chunk executes n_action_steps waypoints after the skipped ones.
     assert [call[0] for call in planner.calls] == [0, 8, 16]  # d steps before each chunk ends
@@ -544,7 +544,7 @@ def test_async_plans_ahead_and_skips_the_steps_that_passed_while_it_planned() ->
 
 def test_sync_waits_for_the_plan_holding_the_last_setpoint() -> None:
     planner = Scripted()
-    actions, _ = run(ChunkExecutor(planner, delay=2, handover="sync"), 14)
+    actions, _ = run(LockstepLoop(planner, delay=2, handover="sync"), 14)
     x = [a[0, 0] for a in actions]
     assert x[0] == 0.5 and x[1] == 0.5 + 0.5  # the pusher held where it was (then guarded)
     assert [v - 0.5 for v in x[2:10]] == [1, 2, 3, 4, 5, 6, 7, 8]  # the chunk from its start
@@ -555,12 +555,12 @@ def test_sync_waits_for_the_plan_holding_the_last_setpoint() -> None:
 def test_zero_delay_is_the_lockstep_executor_whatever_the_handover() -> None:
     runs = []
     for handover in ("sync", "async", "async_prefix"):
-        actions, _ = run(ChunkExecutor(Scripted(), delay=0, handover=handover), 20)
+        actions, _ = run(LockstepLoop(Scripted(), delay=0, handover=handover), 20)
         runs.append(np.stack(actions))
     np.testing.assert_array_equal(runs[0], runs[1])
     np.testing.assert_array_equal(runs[0], runs[2])
     with pytest.raises(ValueError, match="handover"):
-        ChunkExecutor(Scripted(), handover="later")
+        LockstepLoop(Scripted(), handover="later")
 
 
 # -- The live controller (what the policy node runs in real time), with a tiny policy -----------

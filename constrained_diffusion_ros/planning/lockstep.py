@@ -1,7 +1,8 @@
-"""Receding-horizon execution of action chunks: the runtime heart shared by the policy node and
-the evaluation, so both replan alike and consume the same random numbers.
+"""Receding-horizon execution of action chunks in lockstep with the observations: the loop of
+the evaluation, the delay study and the policy node's lockstep mode, so they replan alike and
+consume the same random numbers. Its rules are the live controller's too (action_queue.py).
 
-The executor asks a planner (`ChunkPlanner`) for chunks and a zone source (`ZoneSource`) for the
+The loop asks a planner (`ChunkPlanner`) for chunks and a zone source (`ZoneSource`) for the
 zones in force. It replans an episode when its chunk runs out, or when the zones changed since
 its plan and the rest of the chunk now lies where the planner keeps waypoints out of (the one
 replan rule); the planner's guard has the last word on every setpoint.
@@ -58,7 +59,7 @@ class ExecutionStats:
 HANDOVERS = ("sync", "async", "async_prefix")
 
 
-class ChunkExecutor:
+class LockstepLoop:
     """Plans a chunk per episode and executes `n_action_steps` of its waypoints from
     `first_executed` on (the reference's convention), for a batch of episodes.
 

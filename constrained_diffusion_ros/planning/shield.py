@@ -168,13 +168,19 @@ class PusherShield:
         reach = self.reach[0] * (goal - p).norm(dim=-1) + self.reach[1] * v.norm(dim=-1)
         if self.one_step is None:
             return reach
-        (p_p, p_v, p_u), (v_p, v_v, v_u) = self.one_step
-        late_p = p_p * p[:, None] + p_v * v[:, None] + p_u * held
-        late_v = v_p * p[:, None] + v_v * v[:, None] + v_u * held
+        late_p, late_v = self._step_late(p, v, held)
         late = ((late_p - p[:, None]).norm(dim=-1)
                 + self.reach[0] * (goal[:, None] - late_p).norm(dim=-1)
                 + self.reach[1] * late_v.norm(dim=-1)).amax(dim=1)
         return torch.maximum(reach, late)
+
+    def _step_late(self, p: Tensor, v: Tensor, held: Tensor) -> tuple[Tensor, Tensor]:
+        """(N, K, 2) positions and velocities of pushers at p moving at v (N, 2) after one
+        control step holding each setpoint of `held` (N, K, 2): where a late setpoint takes
+        over."""
+        (p_p, p_v, p_u), (v_p, v_v, v_u) = self.one_step
+        return (p_p * p[:, None] + p_v * v[:, None] + p_u * held,
+                v_p * p[:, None] + v_v * v[:, None] + v_u * held)
 
     def _remember(self, step: int, position: np.ndarray, setpoint: np.ndarray,
                   velocity: np.ndarray, held: np.ndarray) -> None:
@@ -195,11 +201,7 @@ class PusherShield:
         its tick), after a step of each of them."""
         a, b, c = (self.path if path is None else path).unbind(-1)
         if held is not None and self.one_step is not None:
-            if held.dim() == 2:
-                held = held[:, None]
-            (p_p, p_v, p_u), (v_p, v_v, v_u) = self.one_step
-            late_p = p_p * p[:, None] + p_v * v[:, None] + p_u * held
-            late_v = v_p * p[:, None] + v_v * v[:, None] + v_u * held
+            late_p, late_v = self._step_late(p, v, held[:, None] if held.dim() == 2 else held)
             p, v = (torch.cat([p[:, None], late_p], dim=1),
                     torch.cat([v[:, None], late_v], dim=1))  # (N, 1 + K starts, 2)
         else:
@@ -265,8 +267,8 @@ class PusherShield:
         brake = torch.tensor(BRAKE_S, dtype=torch.float64)[None, :, None]
         states = [(p, v)]
         if self.one_step is not None:
-            (p_p, p_v, p_u), (v_p, v_v, v_u) = self.one_step
-            states.append((p_p * p + p_v * v + p_u * start, v_p * p + v_v * v + v_u * start))
+            late_p, late_v = self._step_late(p, v, start[:, None])
+            states.append((late_p[:, 0], late_v[:, 0]))
         return torch.cat([position[:, None] - brake * velocity[:, None]
                           for position, velocity in states], dim=1)
 

@@ -415,17 +415,19 @@ def test_a_zone_dropped_in_front_of_a_fast_pusher_is_braked_for_even_if_the_answ
 
 
 @settings(max_examples=300, deadline=None)
-@given(st.tuples(st.floats(0, 512), st.floats(0, 512)), st.tuples(st.floats(0, 512),
-       st.floats(0, 512)), st.tuples(st.floats(0, 512), st.floats(0, 512)),
+@given(st.tuples(st.floats(100, 180), st.floats(150, 450)), st.tuples(st.floats(-40, 40),
+       st.floats(-40, 40)), st.tuples(st.floats(-40, 40), st.floats(-40, 40)),
        st.tuples(st.floats(-400, 400), st.floats(-400, 400)))
 def test_a_pusher_the_shield_does_not_check_is_clear_now_and_a_step_late(
         position: tuple, held: tuple, goal: tuple, velocity: tuple) -> None:
     """The shield skips the paths of pushers too far from the area to reach it: its bound
-    must hold for the path taking over now and for the one a step late."""
+    must hold for the path taking over now and for the one a step late. Pushers left of the
+    zone, setpoints near them (`held`, `goal`: offsets), where most are skipped."""
     shield = PusherShield(PUSHT_ROBOT)
     p, v = torch.tensor([position], dtype=torch.float64), torch.tensor([velocity],
                                                                        dtype=torch.float64)
-    h, g = torch.tensor([[held]], dtype=torch.float64), torch.tensor([goal], dtype=torch.float64)
+    h, g = p[:, None] + torch.tensor([[held]], dtype=torch.float64), \
+        p + torch.tensor([goal], dtype=torch.float64)
     assume(bool(INFLATED.signed_distance(p.float())[0]
                 >= shield._reach(p, v, h, g)[0] + shield.clearance))
     assert bool(shield._safe(INFLATED, p, v, g[:, None], h)[0, 0])

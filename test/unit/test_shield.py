@@ -422,7 +422,7 @@ def test_a_pusher_the_shield_does_not_check_is_clear_now_and_a_step_late(
         position: tuple, held: tuple, goal: tuple, velocity: tuple) -> None:
     """The shield skips the paths of pushers too far from the area to reach it: its bound
     must hold for the path taking over now and for the one a step late. Pushers left of the
-    zone, setpoints near them (`held`, `goal`: offsets), where most are skipped."""
+    zone, setpoints near them (`held`, `goal`: offsets): about half of such states are skipped."""
     shield = PusherShield(PUSHT_ROBOT)
     p, v = torch.tensor([position], dtype=torch.float64), torch.tensor([velocity],
                                                                        dtype=torch.float64)

@@ -1,11 +1,13 @@
 """The shared `main()` body of every node of the package: init, build, spin, shut down quietly;
-and `spin_until`, how a tool or a test waits on the graph.
+`spin_until`, how a tool or a test waits on the graph; and `RosLogHandler`, which puts Python
+log lines on /rosout.
 
 Part of the ROS interface layer so that the simulator node and the policy-side nodes run alike."""
 
 from __future__ import annotations
 
 import gc
+import logging
 import re
 import sys
 import time
@@ -26,6 +28,29 @@ from msg_schemas.parameters import Param, usage
 from msg_schemas.text import one_line
 
 BAD_ARGUMENTS = 2  # exit code of a command line rclpy cannot parse, as argparse's
+
+
+class RosLogHandler(logging.Handler):
+    """Python `logging` records into a node's logger (and so /rosout), at their level: what a
+    library logs the ROS way (a planning worker's warnings) reaches the tools that watch ROS."""
+
+    def __init__(self, logger) -> None:
+        super().__init__()
+        self.logger = logger
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            text = self.format(record)
+            if record.levelno >= logging.ERROR:
+                self.logger.error(text)
+            elif record.levelno >= logging.WARNING:
+                self.logger.warning(text)
+            elif record.levelno >= logging.INFO:
+                self.logger.info(text)
+            else:
+                self.logger.debug(text)
+        except Exception:  # a log line never takes the node down
+            self.handleError(record)
 
 
 def answered_help(args: list[str] | None, name: str, summary: str,

@@ -1,7 +1,7 @@
 """What planning latency costs, measured deterministically: `latency --help`.
 
 The batched evaluation with an inference delay of d control steps (the chunk asked for at step
-t, from t's observation, is ready at t + d) and three handovers (`LockstepLoop`): sync (the
+t, from t's observation, is ready at t + d) and three handovers (`ChunkLoop`, the loop the policy node runs): sync (the
 robot waits for the plan, as the policy node did when it planned in its callback), async (the
 chunk in force goes on; the new one skips the steps that passed) and async_prefix (async with
 the committed waypoints inpainted into the new chunk). Reports s, r, r_body and the jump at
@@ -27,8 +27,8 @@ from constrained_diffusion_ros.evaluation.runner import (
 )
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
+from constrained_diffusion_ros.planning.chunk_loop import HANDOVERS
 from constrained_diffusion_ros.planning.config import load_configurations
-from constrained_diffusion_ros.planning.lockstep import HANDOVERS
 from constrained_diffusion_ros.policy.weights import load_policy
 
 
@@ -126,9 +126,9 @@ def markdown(rows: list[dict], args: argparse.Namespace) -> str:
         "the new chunk (4 soft ones after them). Jump: mean distance between consecutive "
         "setpoints where a new chunk takes over; step: the same within a chunk (px). r counts "
         "setpoints inside a zone, r_body steps with the pusher's disc overlapping one. The "
-        "lockstep loop runs it, over the action queue, replan rule and observation history "
-        "that the live controller uses too (planning/action_queue.py); live, plans arrive when "
-        "the planning process is done rather than after d steps.",
+        "chunk loop the policy node runs live (planning/chunk_loop.py) runs it, with a simulated "
+        "worker whose plans arrive after d steps; live, they arrive when the planning process "
+        "is done.",
         "",
         "| configuration | scenario | d | handover | s | r | r_body | jump px | step px |",
         "|---|---|---|---|---|---|---|---|---|",

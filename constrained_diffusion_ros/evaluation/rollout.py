@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from constrained_diffusion_ros.planning.lockstep import LockstepLoop, ZoneSource
+from constrained_diffusion_ros.planning.chunk_loop import ChunkLoop, ZoneSource
 from constrained_diffusion_ros.planning.planners import ChunkPlanner
 from sim_bridge import SUCCESS_THRESHOLD, PushTBatch, score_from_coverage
 
@@ -54,23 +54,23 @@ def rollout(planner: ChunkPlanner, seeds: Sequence[int], n_steps: int = 200,
             progress: bool = False, description: str = "rollout", delay: int = 0,
             handover: str = "sync") -> RolloutLog:
     """Runs every seeded scene for `n_steps` control steps, all episodes in one batch, through
-    the same lockstep loop as the policy node; plans are ready `delay` steps after they are
-    asked for (see `LockstepLoop`)."""
+    the chunk loop the policy node runs; plans are ready `delay` steps after they are asked
+    for, and `handover` says what executes meanwhile (see `ChunkLoop`)."""
     sims = PushTBatch(len(seeds))
     states = [sims.reset(list(seeds))]
-    executor = LockstepLoop(planner, zones, generator, delay, handover)
+    loop = ChunkLoop.simulated(planner, zones, generator, delay, handover)
     commanded, coverages, executed_chunk, wanted = [], [], [], []
     with tqdm(total=n_steps, desc=description, unit="step", disable=not progress,
               leave=False) as bar:
         for step in range(n_steps):
-            action = executor.act(sims.observations(), step)
+            action = loop.observe(step, sims.observations())
             states.append(sims.step(action))
             commanded.append(action)
-            wanted.append(executor.wanted)
-            executed_chunk.append(executor.executed_id.copy())
+            wanted.append(loop.wanted)
+            executed_chunk.append(loop.executed_id.copy())
             coverages.append(sims.coverage())
             bar.update(1)
-    stats = executor.stats
+    stats = loop.stats
     return RolloutLog(list(seeds), commanded=np.stack(commanded, axis=1),
                       states=np.stack(states, axis=1), coverage=np.stack(coverages, axis=1),
                       executed_chunk=np.stack(executed_chunk, axis=1),

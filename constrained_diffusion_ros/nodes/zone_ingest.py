@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 from geometry_msgs.msg import PolygonInstanceStamped
 from nav_msgs.msg import OccupancyGrid
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy
 from std_srvs.srv import Trigger
@@ -75,10 +76,14 @@ class ZoneIngest:
         latched = qos_profile(TOPICS["zones"])
         volatile = qos_profile(TOPICS["zones"])
         volatile.durability = DurabilityPolicy.VOLATILE
-        self.subscriptions = [node.create_subscription(PolygonInstanceStamped,
-                                                       TOPICS["zones"].name, self._on_zone,
-                                                       profile)
-                              for profile in (volatile, latched)]
+        # A volatile publisher cannot serve the transient-local one, by design: its "incompatible
+        # QoS" event is expected, not worth a warning on every run.
+        quiet = SubscriptionEventCallbacks(incompatible_qos=lambda _event: None)
+        self.subscriptions = [
+            node.create_subscription(PolygonInstanceStamped, TOPICS["zones"].name,
+                                     self._on_zone, volatile),
+            node.create_subscription(PolygonInstanceStamped, TOPICS["zones"].name,
+                                     self._on_zone, latched, event_callbacks=quiet)]
         self._seen: OrderedDict[tuple, None] = OrderedDict()
         self._paced_until = 0.0  # realtime: no zone batch before then (`_on_zone`)
         node.create_subscription(OccupancyGrid, TOPICS["keepout_mask"].name,

@@ -1,14 +1,13 @@
 """The action queue of real-time chunking: waypoints indexed by control step, free of threads,
-with what the lockstep loop and the live controller share: the replan rule, the rule
-for a chunk used up, and the observation history.
+with the chunk loop's rules on it: the replan rule, the rule for a chunk used up, the committed
+prefix; and the observation history.
 
 A chunk planned from the observation of step t puts its executed waypoint j (chunk index
 `first_executed + j`) at step t + j, whenever it arrives: installed at a later step, the
 waypoints whose time has passed are skipped (as LeRobot's asynchronous action queue merges
 chunks). While a plan is being made, the waypoints that will execute before it arrives are
 already decided; the next chunk is denoised with them held fixed (`committed_prefix`), so the
-handover does not jump. The lockstep loop (lockstep.py) uses it in lockstep, the real-time
-controller (realtime.py) on a clock.
+handover does not jump. The chunk loop (chunk_loop.py) keeps one queue for all its episodes.
 """
 
 from __future__ import annotations
@@ -103,9 +102,8 @@ class ActionQueue:
                      refused: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
         """(R,) whether a waypoint of the rows' chunks still to execute from step `step` on is
         one that `refused` ((R, N, 2) -> (R, N) bool) refuses. With the planner's `violates`
-        (where its plans keep waypoints out of now) it is the one replan rule, that the
-        lockstep loop and the live controller share: replan when zones came onto the
-        rest of the chunk."""
+        (where its plans keep waypoints out of now) it is the chunk loop's replan rule: replan
+        when zones came onto the rest of the chunk."""
         rows = np.asarray(rows)
         remaining = self.remaining(step)[rows]
         count = int(remaining.max(initial=0))
@@ -149,19 +147,23 @@ class ObservationHistory:
 
 
 def committed_prefix(queue: ActionQueue, rows: np.ndarray, step: int, delay: int, soft: int,
-                     first_executed: int) -> CommittedPrefix | None:
+                     first_executed: int, free: np.ndarray | None = None
+                     ) -> CommittedPrefix | None:
     """The prefix hook for a chunk planned at step `step` that arrives `delay` steps later.
 
     Chunk index i lies at step `step - first_executed + i`: indices up to `first_executed +
     delay` are the waypoints already executed or committed (held exactly); the `soft` after
-    them are drawn toward the chunk in force. Rows with no chunk in force are left free.
-    Returns None when nothing is known (the first plan of an episode).
+    them are drawn toward the chunk in force. Rows with no chunk in force, and `free` ones
+    (R,) bool (their chunk was planned for other zones), are left free. Returns None when
+    nothing is known (the first plan of an episode).
     """
     count = first_executed + delay + soft
     known = queue.upcoming(rows, step - first_executed, count)
     weights = np.broadcast_to(prefix_weights(first_executed + delay, soft).numpy(),
                               known.shape[:2]).copy()
     missing = np.isnan(known).any(axis=-1)
+    if free is not None:
+        missing[np.asarray(free, dtype=bool)] = True
     weights[missing] = 0.0
     if not weights.any():
         return None

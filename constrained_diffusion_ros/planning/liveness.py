@@ -50,3 +50,22 @@ class StandstillMeter:
     def reset_run(self) -> None:
         """A new episode: a run does not carry over."""
         self._run = 0
+
+
+class StandstillCounts:
+    """The policy node's two counts: standstills with a waypoint to execute (`filter`: the
+    filter's doing) and while the last setpoint is held waiting for a plan (`waiting`:
+    planning's). A run counts in one of them at a time."""
+
+    def __init__(self) -> None:
+        self.filter, self.waiting = StandstillMeter(), StandstillMeter()
+
+    def update(self, moved: float | None, clearance: float, radius: float,
+               waiting: bool) -> None:
+        """One step (`moved` None: a new episode, where no run carries over)."""
+        counting, other = (self.waiting, self.filter) if waiting else (self.filter, self.waiting)
+        other.reset_run()
+        if moved is None:
+            counting.reset_run()
+        else:
+            counting.update(moved, clearance, radius)

@@ -1,58 +1,69 @@
-"""What a background planner is asked and answers, the one contract between the real-time
-controller and its workers: a job (`PlanJob`), its result (`PlanResult`), how a job is planned
-(`plan_chunk`), the messages of the planning process's protocol (`Request`, `Reply`) and what every
-worker offers (`PlanWorker`).
+"""What a planning worker is asked and answers, the one contract between the chunk loop and its
+workers: a job (`PlanJob`), its result (`PlanResult`), how a job is planned (`plan_chunk`), the
+messages of the planning process's protocol (`Request`, `Reply`) and what every worker offers
+(`PlanWorker`).
 
-Two workers implement `PlanWorker`: `PlanningThread` (thread_worker.py) plans in a thread of
-the node's process, `PlanningProcess` (planning_process.py) in a child process.
+Three workers implement `PlanWorker`: `SimulatedPlanning` (simulated_worker.py) plans in the
+caller's thread and delivers after a simulated delay, for the evaluation and lockstep mode;
+`PlanningThread` (thread_worker.py) plans in a thread of the node's process, `PlanningProcess`
+(planning_process.py) in a child process.
 """
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Protocol
 
 import numpy as np
 import torch
 
-from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
+from constrained_diffusion_ros.planning.planners import ChunkPlanner, ConstrainedPlanner
 from constrained_diffusion_ros.sampling.hooks import CommittedPrefix
 from constrained_diffusion_ros.zones.area import RestrictedArea
 
 
 @dataclass
 class PlanJob:
-    """One request to the background planner: everything it needs, copied when asked."""
+    """One request to a planning worker: everything it needs, copied when asked."""
 
     generation: int
     step: int  # the control step of the newest observation in `observations`
-    observations: torch.Tensor  # (1, n_obs_steps, obs_dim)
-    zones: RestrictedArea | None  # the zones in force when asked
-    zone_version: int
+    observations: torch.Tensor  # (R, n_obs_steps, obs_dim)
+    zones: RestrictedArea | None  # the zones in force when asked, for these rows
+    zone_version: np.ndarray  # (R,) their version (one for all rows: broadcast)
     prefix: CommittedPrefix | None
+    rows: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))  # (R,) the
+    # loop's rows (episodes) it plans for; one episode by default
+
+    def __post_init__(self) -> None:
+        self.zone_version = np.broadcast_to(np.asarray(self.zone_version), self.rows.shape)
 
 
 @dataclass
 class PlanResult:
     job: PlanJob
-    chunk: np.ndarray  # (horizon, 2)
+    chunk: np.ndarray  # (R, horizon - first_executed, 2)
     seconds: float
+    ready_step: int | None = None  # a simulated delay: not before this control step
 
 
-def plan_chunk(planner: ConstrainedPlanner, job: PlanJob, generator: torch.Generator,
-               interrupt: Callable[[], bool] = lambda: False) -> np.ndarray:
-    """(horizon - first_executed, 2) the executed part of a chunk planned for `job` and the
-    rest of the horizon after it; raises `Interrupted` once `interrupt()` is true."""
-    with planner.sampler.interruptible(interrupt):
-        chunk = planner.plan(job.observations, job.zones, None, generator, job.prefix)
-    return chunk[0, planner.policy_config.first_executed:].numpy().astype(float)
+def plan_chunk(planner: ChunkPlanner, job: PlanJob, generator: torch.Generator | None,
+               interrupt: Callable[[], bool] | None = None) -> np.ndarray:
+    """(R, horizon - first_executed, 2) the executed part of the chunks planned for `job` and
+    the rest of the horizon after it; raises `Interrupted` once `interrupt()` is true (a
+    `ConstrainedPlanner`'s sampler asks it before each denoising step)."""
+    with (contextlib.nullcontext() if interrupt is None
+          else planner.sampler.interruptible(interrupt)):
+        chunk = planner.plan(job.observations, job.zones, job.rows, generator, job.prefix)
+    return chunk[:, planner.policy_config.first_executed:].numpy().astype(float)
 
 
 class PlanWorker(Protocol):
-    """A background planner: where the next chunk is denoised while the current one executes,
-    as `RealtimeController` drives it.
+    """A planning worker: where the next chunk is denoised while the current one executes, as
+    `ChunkLoop` drives it.
 
     `submit` replaces a job not yet started (only the newest request matters), and with
     `cancel` stops the one in flight; a result goes to the owner's `on_result` with its job,

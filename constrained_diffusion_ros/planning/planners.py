@@ -37,7 +37,7 @@ from constrained_diffusion_ros.zones.area import RestrictedArea
 
 
 class ChunkPlanner(Protocol):
-    """What the lockstep loop needs. `zones` answer for the rows asked about (a batch-aware
+    """What the chunk loop needs. `zones` answer for the rows asked about (a batch-aware
     area, or one area for all), or are None when no zone is in force."""
 
     robot: RobotModel  # where the pusher is in an observation, for holding it still
@@ -56,6 +56,12 @@ class ChunkPlanner(Protocol):
         """Bool (R, N): which waypoints (R, N, 2) of rows `rows` lie where its plans keep
         waypoints out of, or outside the workspace (where zones that left no free space may
         have pushed them)."""
+        ...
+
+    def keep_out(self, zones: RestrictedArea | None, points: np.ndarray,
+                 rows: np.ndarray | None = None) -> np.ndarray:
+        """(R, 2) waypoints of rows `rows` planned before `zones` came -> the same, those
+        inside the area its plans keep waypoints out of moved just outside it."""
         ...
 
     def guard(self, zones: RestrictedArea | None, observations: np.ndarray,
@@ -133,7 +139,8 @@ class ConstrainedPlanner:
             return outside
         return outside | self.effective_area(zones).contains(waypoints)
 
-    def keep_out(self, zones: RestrictedArea | None, points: np.ndarray) -> np.ndarray:
+    def keep_out(self, zones: RestrictedArea | None, points: np.ndarray,
+                 rows: np.ndarray | None = None) -> np.ndarray:
         """(N, 2) waypoints planned before `zones` came: those inside the area its plans keep
         waypoints out of move just outside it. Fast, for the zone callback: one step along the
         way out, and the full projection only where that step is not enough."""
@@ -249,6 +256,14 @@ class MixedPlanner:
         for planner, mine in self._by_config(rows) if zones is not None else ():
             inside[mine] |= planner.violates(waypoints[mine], zones.select_rows(mine))
         return inside
+
+    def keep_out(self, zones: RestrictedArea | None, points: np.ndarray,
+                 rows: np.ndarray | None = None) -> np.ndarray:
+        rows = np.arange(len(points)) if rows is None else np.asarray(rows)
+        out = np.array(points, dtype=float)
+        for planner, mine in self._by_config(rows) if zones is not None else ():
+            out[mine] = planner.keep_out(zones.select_rows(mine), out[mine])
+        return out
 
     def guard(self, zones: RestrictedArea | None, observations: np.ndarray,
               setpoints: np.ndarray, step: int) -> np.ndarray:

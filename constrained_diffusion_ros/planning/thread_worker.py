@@ -19,7 +19,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult
+from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult, plan_chunk
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.sampling.sampler import Interrupted
 
@@ -38,11 +38,13 @@ class PlanningThread:
     `shutdown()` stops and joins it.
     """
 
-    def __init__(self, plan: Callable[[PlanJob, torch.Generator, Callable[[], bool]],
-                                      np.ndarray],
-                 on_result: Callable[[PlanResult], None], noise_seed: int = 0,
-                 niceness: int = 5, name: str = "planning_thread") -> None:
-        self._plan, self._on_result, self._niceness = plan, on_result, niceness
+    def __init__(self, planner: ConstrainedPlanner, on_result: Callable[[PlanResult], None],
+                 noise_seed: int = 0, niceness: int = 5, name: str = "planning_thread",
+                 plan: Callable[[ConstrainedPlanner, PlanJob, torch.Generator,
+                                 Callable[[], bool]], np.ndarray] = plan_chunk) -> None:
+        """`plan` plans a job (by default `plan_chunk`; tests slow it or make it fail)."""
+        self.planner, self._plan = planner, plan
+        self._on_result, self._niceness = on_result, niceness
         self.priority = f"nice {niceness}"  # how the worker thread is scheduled
         self.generator = torch.Generator().manual_seed(noise_seed)
         self._job: PlanJob | None = None
@@ -73,8 +75,8 @@ class PlanningThread:
             self._wake.notify()
 
     def use(self, planner: ConstrainedPlanner) -> None:
-        """Nothing to do: this worker plans through its owner's `plan`, which reads the
-        owner's planner at each job."""
+        """From the next job on (read when a job starts)."""
+        self.planner = planner
 
     def reseed(self, noise_seed: int) -> None:
         """A new episode: the same noise as a fresh node, from the next job on. The plan in
@@ -108,7 +110,7 @@ class PlanningThread:
                     self._seed = None
             try:
                 began = time.perf_counter()
-                chunk = self._plan(job, self.generator, self._cancel.is_set)
+                chunk = self._plan(self.planner, job, self.generator, self._cancel.is_set)
                 self.failed = False  # before the owner hears of it: planning works again
                 self._on_result(PlanResult(job, chunk, time.perf_counter() - began))
             except Interrupted:

@@ -15,11 +15,11 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from constrained_diffusion_ros.evaluation.launcher import random_domain_id
-from constrained_diffusion_ros.nodes import policy_node, recorder, zone_publisher
+from constrained_diffusion_ros.nodes import policy_parameters, recorder, zone_publisher
 from msg_schemas.parameters import Param, declare, usage
 from sim_bridge import sim_node
 
-NODES = {"policy_node": policy_node, "sim_node": sim_node, "recorder": recorder,
+NODES = {"policy_node": policy_parameters, "sim_node": sim_node, "recorder": recorder,
          "zone_publisher": zone_publisher}
 REPO = Path(__file__).resolve().parents[2]
 LIFETIME = Param("zone_lifetime", 0.0, "s", low=0.0)
@@ -57,7 +57,7 @@ def test_every_parameter_has_a_description_and_a_valid_default(name: str) -> Non
 
 
 def test_usage_lists_parameters_and_the_nodes_own_topics() -> None:
-    text = usage("policy_node", "The policy.", policy_node.PARAMETERS)
+    text = usage("policy_node", "The policy.", policy_parameters.PARAMETERS)
     assert "zone_lifetime (default 0.0, range [0, inf])" in text
     assert "subscribes zones (geometry_msgs/msg/PolygonInstanceStamped)" in text
     assert "publishes setpoint" in text and "serves clear_zones" in text

@@ -22,7 +22,7 @@ from ros_helpers import Ros, shown_zone_ids, stamp_step, step_stamp
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from constrained_diffusion_ros.nodes.policy_node import PENDING_HALVES, keep_pending
+from constrained_diffusion_ros.nodes.observation_input import PENDING_HALVES, keep_pending
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from msg_schemas import FRAME_ID, SERVICES, TOPICS
 from sim_bridge import AGENT_RADIUS

@@ -95,7 +95,7 @@ def test_the_package_imports_run_one_way_without_circles() -> None:
     graph = import_graph(REPO)
     assert len(graph) > 40
     assert "constrained_diffusion_ros.planning.planners" in graph[
-        "constrained_diffusion_ros.planning.lockstep"]
+        "constrained_diffusion_ros.planning.chunk_loop"]
     assert violations(graph) == []
 
 
@@ -128,3 +128,42 @@ def test_the_check_catches_circles_and_imports_against_the_layers(tmp_path: Path
         " -> constrained_diffusion_ros.zones.a" in found
     assert "import circle: constrained_diffusion_ros.pusht -> sim_bridge.scene -> " \
         "constrained_diffusion_ros.pusht" in found  # through a lazy import, too
+
+
+def private_uses(source: str) -> list[str]:
+    """Names starting with `_` that a module imports from the planning layer, or reads as an
+    attribute of anything but `self` (another object's internals)."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.ImportFrom) and (node.module or "").startswith(
+                "constrained_diffusion_ros.planning"):
+            found += [f"{node.module}.{a.name}" for a in node.names if a.name.startswith("_")]
+        elif isinstance(node, ast.Attribute) and node.attr.startswith("_") \
+                and not node.attr.startswith("__") \
+                and not (isinstance(node.value, ast.Name) and node.value.id == "self"):
+            found.append(ast.unparse(node))
+    return found
+
+
+def test_nodes_use_nothing_private_of_the_planning_layer() -> None:
+    nodes = sorted((REPO / "constrained_diffusion_ros" / "nodes").glob("*.py"))
+    assert len(nodes) >= 5
+    found = {path.name: private_uses(path.read_text()) for path in nodes}
+    assert {name: uses for name, uses in found.items() if uses} == {}
+    assert private_uses("from constrained_diffusion_ros.planning.x import _hidden\n"
+                        "self.loop._ask()\n") == ["constrained_diffusion_ros.planning.x._hidden",
+                                                  "self.loop._ask"]
+
+
+def test_one_chunk_loop_drives_the_evaluation_lockstep_and_the_live_node() -> None:
+    """The evaluation's rollout and the policy node (both modes) run `ChunkLoop`; no other
+    module keeps an action queue of its own, so there is one replan rule."""
+    package = REPO / "constrained_diffusion_ros"
+    for driver in ("evaluation/rollout.py", "nodes/policy_node.py"):
+        assert "ChunkLoop" in {node.id for node in ast.walk(ast.parse(
+            (package / driver).read_text())) if isinstance(node, ast.Name)}, driver
+    queue_owners = {path.relative_to(package).as_posix() for path in package.rglob("*.py")
+                    if any(isinstance(node, ast.Call) and isinstance(node.func, ast.Name)
+                           and node.func.id == "ActionQueue"
+                           for node in ast.walk(ast.parse(path.read_text())))}
+    assert queue_owners == {"planning/chunk_loop.py"}

@@ -1,6 +1,6 @@
-"""The lockstep loop on its own, with a planner whose chunks say who made them: which waypoints
-execute, when it replans (chunk used up; zones changed into the rest of it), the guard's last
-word, and a new episode."""
+"""The chunk loop in lockstep (a simulated worker, no delay), with a planner whose chunks say who
+made them: which waypoints execute, when it replans (chunk used up; zones changed into the rest
+of it), the guard's last word, and a new episode."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from constrained_diffusion_ros.planning.action_queue import ObservationHistory
-from constrained_diffusion_ros.planning.lockstep import LockstepLoop
+from constrained_diffusion_ros.planning.chunk_loop import ChunkLoop
 from constrained_diffusion_ros.policy.config import PolicyConfig
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones import RestrictedArea, ZoneSet, rectangle
@@ -73,13 +73,19 @@ def observations(step: int, batch: int = 2) -> np.ndarray:
     return out
 
 
-def run(executor: LockstepLoop, steps: range, batch: int = 2) -> np.ndarray:
-    return np.stack([executor.act(observations(t, batch), t) for t in steps])
+def lockstep(planner, zones=None, generator: torch.Generator | None = None, delay: int = 0,
+             handover: str = "sync") -> ChunkLoop:
+    """The loop as the evaluation runs it."""
+    return ChunkLoop.simulated(planner, zones, generator, delay, handover)
+
+
+def run(loop: ChunkLoop, steps: range, batch: int = 2) -> np.ndarray:
+    return np.stack([loop.observe(t, observations(t, batch)) for t in steps])
 
 
 def test_executes_the_chunk_from_the_first_executed_waypoint_and_replans_when_used_up() -> None:
     planner = Scripted()
-    setpoints = run(LockstepLoop(planner), range(20))
+    setpoints = run(lockstep(planner), range(20))
     assert [step for step, _, _ in planner.calls] == [0, 8, 16]  # every n_action_steps
     assert all(rows == [0, 1] for _, rows, _ in planner.calls)
     expected_x = np.r_[1000 * 0 + np.arange(1, 9), 1000 * 1 + np.arange(1, 9),
@@ -91,7 +97,7 @@ def test_executes_the_chunk_from_the_first_executed_waypoint_and_replans_when_us
 
 def test_a_zone_change_into_the_rest_of_a_chunk_replans_those_rows_at_once() -> None:
     planner, zones = Scripted(), Zones()
-    executor = LockstepLoop(planner, zones)
+    executor = lockstep(planner, zones)
     run(executor, range(3))  # chunk 0 planned at step 0; waypoints 1..3 executed
     # A zone over row 1's remaining waypoints (y = 1), not row 0's (y = 0), not the executed ones.
     zones.set(ZoneSet.from_polygons([rectangle(4.5, 0.5, 7.5, 1.5)]))
@@ -106,7 +112,7 @@ def test_a_zone_change_into_the_rest_of_a_chunk_replans_those_rows_at_once() -> 
 
 def test_changed_zones_the_chunk_stays_out_of_do_not_replan() -> None:
     planner, zones = Scripted(), Zones()
-    executor = LockstepLoop(planner, zones)
+    executor = lockstep(planner, zones)
     run(executor, range(2))
     zones.set(ZoneSet.from_polygons([rectangle(300, 300, 400, 400)]))  # far from every waypoint
     run(executor, range(2, 6))
@@ -118,7 +124,7 @@ def test_changed_zones_the_chunk_stays_out_of_do_not_replan() -> None:
 def test_a_new_episode_starts_afresh_and_reseeds_the_noise() -> None:
     planner = Scripted()
     generator = torch.Generator().manual_seed(5)
-    executor = LockstepLoop(planner, generator=generator)
+    executor = lockstep(planner, generator=generator)
     run(executor, range(3))
     torch.rand(3, generator=generator)  # noise drawn in the first episode
     executor.reset(noise_seed=5)

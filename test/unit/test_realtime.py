@@ -1,5 +1,5 @@
 """Real-time chunking: the step-indexed action queue, the committed prefix it gives the next
-plan, the background planner's thread, and the executor with an inference delay."""
+plan, the planning workers, and the chunk loop with a simulated delay and live."""
 
 from __future__ import annotations
 
@@ -21,12 +21,12 @@ import numpy as np
 import pytest
 import torch
 from samples import chunk_of_rows
-from test_lockstep import CONFIG, Scripted
+from test_lockstep import CONFIG, Scripted, lockstep
 
 from constrained_diffusion_ros.planning.action_queue import ActionQueue, committed_prefix
+from constrained_diffusion_ros.planning.chunk_loop import ChunkLoop, warm_up
 from constrained_diffusion_ros.planning.clock import ControlClock
 from constrained_diffusion_ros.planning.config import ConstraintConfig
-from constrained_diffusion_ros.planning.lockstep import LockstepLoop
 from constrained_diffusion_ros.planning.os_scheduling import (
     STARVED_SHARE,
     CpuShare,
@@ -37,7 +37,6 @@ from constrained_diffusion_ros.planning.os_scheduling import (
 from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult, plan_chunk
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.planning.planning_process import PlanningProcess, _send, serve
-from constrained_diffusion_ros.planning.realtime import RealtimeController, warm_up
 from constrained_diffusion_ros.planning.thread_worker import PlanningThread
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.weights import save_policy
@@ -96,7 +95,8 @@ def test_the_background_planner_plans_the_newest_job_on_its_own_thread() -> None
         return np.full((16, 2), float(job.generation))
 
     done = threading.Semaphore(0)
-    worker = PlanningThread(plan, lambda r: (results.append(r), done.release()))
+    worker = PlanningThread(None, lambda r: (results.append(r), done.release()),
+                            plan=lambda _, *job: plan(*job))
     try:
         job = PlanJob(1, 0, torch.zeros(1, 2, 20), None, 0, None)
         worker.submit(job)
@@ -127,7 +127,8 @@ def test_the_background_planner_stops_the_plan_in_flight_when_asked() -> None:
             threading.Event().wait(0.01)
         return np.full((16, 2), float(job.generation))
 
-    worker = PlanningThread(plan, lambda r: (results.append(r), done.release()))
+    worker = PlanningThread(None, lambda r: (results.append(r), done.release()),
+                            plan=lambda _, *job: plan(*job))
     try:
         worker.submit(PlanJob(1, 0, torch.zeros(1, 2, 20), None, 0, None))
         assert started.wait(5)
@@ -154,7 +155,8 @@ def test_the_background_planner_reseeds_from_the_next_job_and_stops_the_one_in_f
             raise Interrupted("stopped")
         return noise
 
-    worker = PlanningThread(plan, lambda r: (results.append(r), done.release()))
+    worker = PlanningThread(None, lambda r: (results.append(r), done.release()),
+                            plan=lambda _, *job: plan(*job))
     try:
         worker.submit(PlanJob(1, 0, torch.zeros(1, 2, 20), None, 0, None))
         assert started.wait(5)
@@ -231,11 +233,10 @@ def test_the_planning_process_stops_the_plan_in_flight_and_plans_the_pending_one
 
 @contextlib.contextmanager
 def submits_recorded(policy: DiffusionPolicy, zones: LiveZones
-                     ) -> Iterator[tuple[RealtimeController, list[tuple[PlanJob, bool]]]]:
+                     ) -> Iterator[tuple[ChunkLoop, list[tuple[PlanJob, bool]]]]:
     """A controller with its first chunk installed, whose worker from then on only records
     what is submitted, (job, cancel), as if a plan were always in flight."""
-    controller = RealtimeController(ConstrainedPlanner(policy, SAFE, PUSHT_ROBOT), zones,
-                                    rate_hz=10.0, lead=1)
+    controller = live(ConstrainedPlanner(policy, SAFE, PUSHT_ROBOT), zones, lead=1)
     worker = controller.worker
     try:
         controller.observe(0, observation_with_pusher(200, 200))
@@ -252,7 +253,7 @@ def submits_recorded(policy: DiffusionPolicy, zones: LiveZones
 def test_a_zone_change_stops_the_plan_in_flight_once_until_the_replan_arrives(
         tiny_policy: DiffusionPolicy) -> None:
     """The first zone change that puts the rest of the chunk in a zone stops the plan in
-    flight; those that follow while its replan is out do not stop the replan (a zone
+    flight; those that follow while its replan is out neither stop nor ask (a zone
     re-published on every frame would stop every plan); once it arrives, the next may."""
     zones = LiveZones()
     with submits_recorded(tiny_policy, zones) as (controller, submitted):
@@ -265,15 +266,24 @@ def test_a_zone_change_stops_the_plan_in_flight_once_until_the_replan_arrives(
             x, y = waypoint
             zones.upsert(zone_id, rectangle(x - 2, y - 2, x + 2, y + 2), now=0.0)
             controller.zones_changed()
+            controller.install_results()  # as the node does when woken
 
         for zone_id in (1, 2, 3):  # each on a waypoint still to come
             zone_on(zone_id, rest[zone_id])
-        assert [cancel for _, cancel in submitted] == [True, False, False]
-        controller._on_result(PlanResult(submitted[-1][0], chunk, 0.1))  # the replan arrives
+        assert [cancel for _, cancel in submitted] == [True]
+        # It arrives entering zones that came after it was asked: dropped and asked again.
+        controller._on_result(PlanResult(submitted[-1][0], chunk[None], 0.1))
+        controller.install_results()
+        assert controller.stats.plans_dropped == 1
+        assert [cancel for _, cancel in submitted] == [True, True]
+        clear = chunk + np.array([0.0, 150.0])  # clear of every zone
+        controller._on_result(PlanResult(submitted[-1][0], clear[None], 0.1))
         controller.install_results()
         assert controller.stats.plans_installed == 2
-        zone_on(4, rest[5])
-        assert submitted[-1][1] is True
+        rest = controller.queue.upcoming(np.array([0]), 0,
+                                         int(controller.queue.remaining(0)[0]))[0]
+        zone_on(4, rest[-1])
+        assert [cancel for _, cancel in submitted] == [True, True, True]
 
 
 def test_a_stopped_plan_that_arrives_anyway_is_dropped_without_asking_again(
@@ -284,46 +294,41 @@ def test_a_stopped_plan_that_arrives_anyway_is_dropped_without_asking_again(
     zones = LiveZones()
     with submits_recorded(tiny_policy, zones) as (controller, submitted):
         chunk = controller.queue.waypoints[0].copy()
-        controller._ask(prefix=False)  # the plan in flight, before the zone
+        controller._ask(np.array([0]))  # the plan in flight, before the zone
         x, y = controller.queue.upcoming(np.array([0]), 0, 2)[0, 1]
         zones.upsert(1, rectangle(x - 2, y - 2, x + 2, y + 2), now=0.0)
         controller.zones_changed()
+        controller.install_results()
         (stopped, _), (replan, cancel) = submitted
-        assert cancel and controller.replan is replan
-        controller._on_result(PlanResult(stopped, chunk, 0.1))  # its stop came too late
+        assert cancel and controller.replanning[0] is replan
+        controller._on_result(PlanResult(stopped, chunk[None], 0.1))  # its stop came too late
         controller.install_results()
         assert controller.stats.plans_dropped == 1 and len(submitted) == 2
         zones.upsert(2, rectangle(x - 3, y - 3, x + 3, y + 3), now=0.0)  # after the replan
-        controller._on_result(PlanResult(replan, chunk, 0.1))
+        controller._on_result(PlanResult(replan, chunk[None], 0.1))
         controller.install_results()
         assert controller.stats.plans_dropped == 2 and len(submitted) == 3
 
 
-def test_a_replan_that_never_comes_does_not_keep_zones_from_stopping_plans(
+def test_a_replan_that_never_comes_is_asked_again_and_does_not_block_the_next(
         tiny_policy: DiffusionPolicy) -> None:
     """A replan that failed leaves the worker idle without a result: it is not waited for. The
-    next zone change stops the plan in flight again, and a plan dropped on arrival asks again."""
+    next observation asks again while the rest of the chunk still enters the zone, stopping
+    what is in flight."""
     zones = LiveZones()
     with submits_recorded(tiny_policy, zones) as (controller, submitted):
         rest = controller.queue.upcoming(np.array([0]), 0,
                                          int(controller.queue.remaining(0)[0]))[0]
-        for zone_id, waypoint in ((1, rest[1]), (2, rest[3])):
-            x, y = waypoint
-            zones.upsert(zone_id, rectangle(x - 2, y - 2, x + 2, y + 2), now=0.0)
-            controller.zones_changed()
-            assert submitted[-1][1] is True  # the plan in flight stopped
-            controller.worker.busy = False  # the replan failed: nothing in flight, no result
-            controller.observe(1, observation_with_pusher(200, 200))
-            controller.worker.busy = True  # a plan in flight again
-        assert len(submitted) == 2
-        chunk = controller.queue.waypoints[0].copy()
-        x, y = rest[5]
-        zones.upsert(3, rectangle(x - 2, y - 2, x + 2, y + 2), now=0.0)
-        controller.zones_changed()  # a third replan, which fails too
-        controller.worker.busy = False
-        controller._on_result(PlanResult(submitted[0][0], chunk, 0.1))  # stopped too late
+        x, y = rest[3]
+        zones.upsert(1, rectangle(x - 2, y - 2, x + 2, y + 2), now=0.0)
+        controller.zones_changed()
         controller.install_results()
-        assert controller.stats.plans_dropped == 1 and len(submitted) == 4  # asked again
+        assert [cancel for _, cancel in submitted] == [True]  # the plan in flight stopped
+        controller.observe(1, observation_with_pusher(200, 200))
+        assert len(submitted) == 1  # the replan is on its way: not asked twice
+        controller.worker.busy = False  # the replan failed: nothing in flight, no result
+        controller.observe(2, observation_with_pusher(200, 200))
+        assert [cancel for _, cancel in submitted] == [True, True]  # asked again
 
 
 def test_a_zone_that_moves_the_held_setpoint_stops_the_plan_in_flight(
@@ -337,14 +342,16 @@ def test_a_zone_that_moves_the_held_setpoint_stops_the_plan_in_flight(
         while controller.queue.remaining(step)[0] > 0:  # the chunk runs out
             step += 1
             held = controller.observe(step, observation_with_pusher(200, 200))
-        assert not controller._rest_entered() and not submitted
+        assert controller.queue.remaining(step)[0] == 0 and not submitted
         x, y = held
         zones.upsert(1, rectangle(x - 5, y - 5, x + 5, y + 5), now=0.0)
         assert controller.zones_changed() is not None  # the held setpoint moved
+        controller.install_results()
         assert [cancel for _, cancel in submitted] == [True]
-        controller.replan = None  # as if the replan had arrived
+        controller.replanning[:] = None  # as if the replan had arrived
         zones.remove(1)
         np.testing.assert_array_equal(controller.zones_changed(), held)  # back, nothing asked
+        controller.install_results()
         assert len(submitted) == 1
 
 
@@ -358,7 +365,8 @@ def test_a_planning_error_is_kept_and_the_worker_keeps_serving() -> None:
             raise RuntimeError("boom")
         return np.zeros((16, 2))
 
-    worker = PlanningThread(plan, lambda r: done.release())
+    worker = PlanningThread(None, lambda r: done.release(),
+                            plan=lambda _, *job: plan(*job))
     try:
         worker.submit(PlanJob(1, 0, torch.zeros(1, 2, 20), None, 0, None))
         assert failed.wait(5)
@@ -521,17 +529,17 @@ def observations_at(step: int, batch: int = 2) -> np.ndarray:
     return np.full((batch, CONFIG.obs_dim), float(step), dtype=np.float32)
 
 
-def run(executor: LockstepLoop, steps: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+def run(executor: ChunkLoop, steps: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
     actions, handovers = [], []
     for step in range(steps):
-        actions.append(executor.act(observations_at(step), step))
+        actions.append(executor.observe(step, observations_at(step)))
         handovers.append(executor.handed_over.copy())
     return actions, handovers
 
 
 def test_async_plans_ahead_and_skips_the_steps_that_passed_while_it_planned() -> None:
     planner = Scripted()
-    actions, handovers = run(LockstepLoop(planner, delay=2, handover="async"), 20)
+    actions, handovers = run(lockstep(planner, delay=2, handover="async"), 20)
     # Asked at step 0 (nothing to execute: hold), ready at 2 with waypoints 0, 1 skipped; each
     # chunk executes n_action_steps waypoints after the skipped ones.
     assert [call[0] for call in planner.calls] == [0, 8, 16]  # d steps before each chunk ends
@@ -544,7 +552,7 @@ def test_async_plans_ahead_and_skips_the_steps_that_passed_while_it_planned() ->
 
 def test_sync_waits_for_the_plan_holding_the_last_setpoint() -> None:
     planner = Scripted()
-    actions, _ = run(LockstepLoop(planner, delay=2, handover="sync"), 14)
+    actions, _ = run(lockstep(planner, delay=2, handover="sync"), 14)
     x = [a[0, 0] for a in actions]
     assert x[0] == 0.5 and x[1] == 0.5 + 0.5  # the pusher held where it was (then guarded)
     assert [v - 0.5 for v in x[2:10]] == [1, 2, 3, 4, 5, 6, 7, 8]  # the chunk from its start
@@ -555,12 +563,12 @@ def test_sync_waits_for_the_plan_holding_the_last_setpoint() -> None:
 def test_zero_delay_is_the_lockstep_executor_whatever_the_handover() -> None:
     runs = []
     for handover in ("sync", "async", "async_prefix"):
-        actions, _ = run(LockstepLoop(Scripted(), delay=0, handover=handover), 20)
+        actions, _ = run(lockstep(Scripted(), delay=0, handover=handover), 20)
         runs.append(np.stack(actions))
     np.testing.assert_array_equal(runs[0], runs[1])
     np.testing.assert_array_equal(runs[0], runs[2])
     with pytest.raises(ValueError, match="handover"):
-        LockstepLoop(Scripted(), handover="later")
+        lockstep(Scripted(), handover="later")
 
 
 # -- The live controller (what the policy node runs in real time), with a tiny policy -----------
@@ -575,7 +583,17 @@ def observation_with_pusher(x: float, y: float) -> np.ndarray:
     return obs
 
 
-def installed(controller: RealtimeController) -> None:
+def live(planner: ConstrainedPlanner, zones: LiveZones, lead: int | None = None,
+         process_threads: int | None = None) -> ChunkLoop:
+    """The loop as the node runs it live: plans from a thread (or a process), warmed up."""
+    warm_up(planner)
+    return ChunkLoop(planner, (lambda p, on_result: PlanningThread(p, on_result))
+                     if process_threads is None else
+                     (lambda p, on_result: PlanningProcess(p, on_result, 0, process_threads)),
+                     zones, lead=lead, noise_seed=0)
+
+
+def installed(controller: ChunkLoop) -> None:
     """Wait for the worker's plan and install it, as the node does when woken."""
     for _ in range(5000):
         if not controller.worker.busy:
@@ -604,11 +622,11 @@ def held_planner(policy: DiffusionPolicy) -> tuple[ConstrainedPlanner, threading
 def test_the_controller_installs_a_late_plan_without_the_steps_that_passed(
         tiny_policy: DiffusionPolicy) -> None:
     planner, started, release = held_planner(tiny_policy)
-    controller = RealtimeController(planner, LiveZones(), rate_hz=10.0)
+    controller = live(planner, LiveZones())
     try:
-        assert controller.tick() is None  # nothing observed yet: nothing to send
+        assert controller.step is None  # nothing observed yet
         controller.observe(0, observation_with_pusher(100, 100))
-        held = controller.tick()  # no chunk yet: the pusher held where it is; plan asked
+        held = controller.setpoints[0]  # no chunk yet: the pusher held where it is; plan asked
         np.testing.assert_allclose(held, [100, 100])
         assert started.wait(5)
         for step in (1, 2, 3):  # the plan takes three steps to come in
@@ -618,7 +636,7 @@ def test_the_controller_installs_a_late_plan_without_the_steps_that_passed(
         assert controller.stats.plans_installed == 1
         assert controller.queue.skipped == 3
         chunk = controller.queue.waypoints[0]
-        np.testing.assert_allclose(controller.tick(), chunk[3])  # step 3's, not step 0's
+        np.testing.assert_allclose(controller.setpoints[0], chunk[3])  # step 3's, not step 0's
     finally:
         controller.shutdown()
 
@@ -627,22 +645,22 @@ def test_the_controller_installs_a_late_plan_without_the_steps_that_passed(
 def test_a_zone_arriving_mid_chunk_gets_a_safe_setpoint_before_the_next_tick(
         tiny_policy: DiffusionPolicy, process_threads: int | None) -> None:
     zones = LiveZones()  # lead 1: no plan asked for the chunk running out, however slow plans
-    controller = RealtimeController(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT), zones,
-                                    rate_hz=10.0, lead=1, process_threads=process_threads)
+    controller = live(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT), zones, lead=1,
+                      process_threads=process_threads)
     try:
         controller.observe(0, observation_with_pusher(200, 200))
-        controller.tick()
         installed(controller)
-        setpoint = controller.tick()
+        setpoint = controller.setpoints[0]
         x, y = setpoint
         zones.upsert(1, rectangle(x - 20, y - 20, x + 20, y + 20), now=0.0)  # on the setpoint
         safe = controller.zones_changed()
         assert safe is not None and controller.stats.zone_reactions == 1
+        controller.install_results()  # as the node does when woken
         inflated = zones.snapshot().inflate(PUSHT_ROBOT.pusher_radius)
         assert inflated.signed_distance(torch.tensor(safe[None])).item() > 0
         assert controller.stats.plans_asked == 2  # the rest of the chunk was replanned
         installed(controller)
-        assert zones.snapshot().signed_distance(torch.tensor(controller.tick()[None])) > 0
+        assert zones.snapshot().signed_distance(torch.tensor(controller.setpoints[0][None])) > 0
         zones.upsert(2, rectangle(400, 400, 450, 450), now=0.0)  # far away: nothing to do
         assert controller.zones_changed() is None
     finally:
@@ -669,10 +687,9 @@ def test_a_new_configuration_stops_the_plan_in_flight(tiny_policy: DiffusionPoli
     """The first configuration's plan is held in flight until the configuration has changed:
     it stops before its first denoising step, and the new configuration's plan goes in."""
     old, started, release = held_planner(tiny_policy)
-    controller = RealtimeController(old, LiveZones(), rate_hz=10.0, lead=1)
+    controller = live(old, LiveZones(), lead=1)
     try:
         controller.observe(0, observation_with_pusher(100, 100))
-        controller.tick()  # a plan asked for under the first configuration
         assert started.wait(5)
         controller.use_planner(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT))
         release.set()
@@ -690,19 +707,19 @@ def test_a_new_episode_stops_the_plan_in_flight_and_never_installs_one_from_befo
     stopped and the new episode's first plan asked at once. One from before that ends anyway
     (its stop came too late) is dropped: its generation is the old one."""
     planner, started, release = held_planner(tiny_policy)
-    controller = RealtimeController(planner, LiveZones(), rate_hz=10.0, lead=1)
+    controller = live(planner, LiveZones(), lead=1)
     try:
         controller.observe(5, observation_with_pusher(100, 100))
         assert started.wait(5)
         controller.observe(0, observation_with_pusher(300, 300))  # the sim was reset
-        np.testing.assert_allclose(controller.tick(), [300, 300])  # held, nothing from before
+        np.testing.assert_allclose(controller.setpoints[0], [300, 300])  # held, none from before
         release.set()
         installed(controller)
         stats = controller.stats
         assert (stats.plans_asked, stats.plans_dropped, stats.plans_installed) == (2, 0, 1)
         assert controller.worker.cancelled == 1
         stale = PlanJob(controller.generation - 1, 5, controller.history.tensor(), None, 0, None)
-        controller._on_result(PlanResult(stale, controller.queue.waypoints[0].copy(), 0.1))
+        controller._on_result(PlanResult(stale, controller.queue.waypoints.copy(), 0.1))
         controller.install_results()
         assert (stats.plans_dropped, stats.plans_installed) == (1, 1)
     finally:
@@ -715,12 +732,13 @@ def test_a_zone_stops_the_first_plan_of_an_episode_like_any_other(
     that come while it is planned: a zone on the held setpoint stops it, and the replan goes in."""
     planner, started, release = held_planner(tiny_policy)
     zones = LiveZones()
-    controller = RealtimeController(planner, zones, rate_hz=10.0, lead=1)
+    controller = live(planner, zones, lead=1)
     try:
         controller.observe(0, observation_with_pusher(100, 100))
         assert started.wait(5)
         zones.upsert(1, rectangle(95, 95, 105, 105), now=0.0)
         assert controller.zones_changed() is not None  # moved off the zone at once
+        controller.install_results()  # as the node does when woken: the replan asked
         release.set()
         installed(controller)
         stats = controller.stats

@@ -18,6 +18,7 @@ import pytest
 import torch
 
 from constrained_diffusion_ros.planning import planning_process as workers
+from constrained_diffusion_ros.planning.chunk_loop import ChunkLoop
 from constrained_diffusion_ros.planning.config import ConstraintConfig
 from constrained_diffusion_ros.planning.os_scheduling import (
     CpuShare,
@@ -33,7 +34,6 @@ from constrained_diffusion_ros.planning.planning_process import (
     RESTART_LIMIT,
     PlanningProcess,
 )
-from constrained_diffusion_ros.planning.realtime import RealtimeController
 from constrained_diffusion_ros.planning.thread_worker import PlanningThread
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
@@ -99,9 +99,9 @@ def test_the_controller_plans_again_after_its_planning_child_is_killed(
     """The controller does not wait for the plan that died: it finds the worker idle and asks
     again, and the new child's plans are installed."""
     woken = threading.Event()
-    controller = RealtimeController(ConstrainedPlanner(tiny_policy, FAST, PUSHT_ROBOT),
-                                    LiveZones(), rate_hz=10.0, wake=woken.set,
-                                    process_threads=1)
+    controller = ChunkLoop(ConstrainedPlanner(tiny_policy, FAST, PUSHT_ROBOT),
+                           lambda planner, on_result: PlanningProcess(planner, on_result, 0, 1),
+                           LiveZones(), wake=woken.set)
     observation = np.full(20, 256.0, dtype=np.float32)
     steps = iter(range(1, 100_000))
 
@@ -169,7 +169,8 @@ def test_the_thread_worker_reports_a_fault_until_the_next_plan() -> None:
         return np.zeros((16, 2))
 
     seen: list[bool] = []
-    worker = PlanningThread(plan, lambda r: (seen.append(worker.failed), arrived.release()))
+    worker = PlanningThread(None, lambda r: (seen.append(worker.failed), arrived.release()),
+                            plan=lambda _, *job: plan(*job))
     try:
         assert not worker.failed and worker.restarts == 0
         worker.submit(job(1))

@@ -1,0 +1,92 @@
+"""Observations in from ROS for the policy node: the keypoints and the pusher, paired by stamp.
+
+`ObservationInput` is a helper in the manner of tf2_ros's `TransformListener`: built with a node,
+it owns the two observation subscriptions and the halves waiting for their other half, and hands
+the node each whole observation once, checked: one that is not finite, or whose pusher cannot be
+the robot's (out of the workspace, or a jump no PD pusher can make), is refused with a warning
+and counted, and nothing is planned from it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from geometry_msgs.msg import PointStamped, PolygonStamped
+from rclpy.node import Node
+
+from constrained_diffusion_ros.planning.robot import RobotModel
+from msg_schemas import TOPICS, qos_profile
+from msg_schemas.conversions import point_of, polygon_of, stamp_seconds
+from sim_bridge.scene import observation as pusht_observation
+
+PENDING_HALVES = 64  # observation halves (keypoints or pusher) kept waiting for their other half
+
+
+def keep_pending(pending: dict[float, np.ndarray], stamp: float, half: np.ndarray) -> None:
+    """Keep one half of an observation until its other half comes, the oldest dropped past
+    PENDING_HALVES: halves that never pair (a future stamp, a dead topic) cannot pile up."""
+    pending.pop(stamp, None)
+    pending[stamp] = half
+    while len(pending) > PENDING_HALVES:
+        del pending[next(iter(pending))]
+
+
+class ObservationInput:
+    """Calls `on_pair(stamp, stamp_msg)` when both halves of a stamp are in; the node then
+    `take`s the observation. `refused` counts the observations refused; `pusher` is the last
+    plausible pusher position, `moved` how far it moved from the one before (None at a new
+    episode: a stamp no later than the last)."""
+
+    def __init__(self, node: Node, robot: RobotModel,
+                 on_pair: Callable[[float, object], None]) -> None:
+        self.node, self.robot, self.on_pair = node, robot, on_pair
+        self.keypoints: dict[float, np.ndarray] = {}
+        self.pushers: dict[float, np.ndarray] = {}
+        self.refused = 0
+        self.pusher: np.ndarray | None = None
+        self.pusher_stamp: float | None = None
+        self.moved: float | None = None
+        self.subscriptions = [
+            node.create_subscription(PolygonStamped, TOPICS["keypoints"].name,
+                                     self._on_keypoints, qos_profile(TOPICS["keypoints"])),
+            node.create_subscription(PointStamped, TOPICS["pusher"].name, self._on_pusher,
+                                     qos_profile(TOPICS["pusher"]))]
+
+    def _on_keypoints(self, msg: PolygonStamped) -> None:
+        if len(msg.polygon.points) != 9:
+            self.node.get_logger().warning(
+                f"keypoints need 9 points, got {len(msg.polygon.points)}")
+            return
+        self._half(self.keypoints, msg.header.stamp, polygon_of(msg.polygon))
+
+    def _on_pusher(self, msg: PointStamped) -> None:
+        self._half(self.pushers, msg.header.stamp, point_of(msg))
+
+    def _half(self, pending: dict[float, np.ndarray], stamp_msg, half: np.ndarray) -> None:
+        stamp = stamp_seconds(stamp_msg)
+        keep_pending(pending, stamp, half)
+        if stamp in self.keypoints and stamp in self.pushers:
+            self.on_pair(stamp, stamp_msg)
+
+    def take(self, stamp: float) -> np.ndarray | None:
+        """The observation of `stamp` from its two halves (older halves dropped), or None
+        when it is refused (warned, counted)."""
+        observation = pusht_observation(self.keypoints.pop(stamp), self.pushers.pop(stamp))
+        for pending in (self.keypoints, self.pushers):
+            for old in [s for s in pending if s < stamp]:
+                del pending[old]
+        pusher = self.robot.pusher(observation).astype(float)
+        new_episode = self.pusher_stamp is None or stamp <= self.pusher_stamp
+        reason = "NaN/inf" if not np.all(np.isfinite(observation)) else \
+            self.robot.implausible(pusher, None if new_episode else self.pusher,
+                                   0.0 if new_episode else stamp - self.pusher_stamp)
+        if reason is not None:
+            self.refused += 1
+            self.node.get_logger().warning(
+                f"observation refused, last safe setpoint held: {reason}",
+                throttle_duration_sec=1.0)
+            return None
+        self.moved = None if new_episode else float(np.linalg.norm(pusher - self.pusher))
+        self.pusher, self.pusher_stamp = pusher, stamp
+        return observation

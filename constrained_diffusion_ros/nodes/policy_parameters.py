@@ -1,0 +1,116 @@
+"""The policy node's parameters (declared with descriptors; `--help` and the README's table are
+made from them) and the plug-in area they name."""
+
+from __future__ import annotations
+
+import pickle
+
+from constrained_diffusion_ros.paths import config_dir, default_model_dir
+from constrained_diffusion_ros.planning.config import safe_yaml
+from constrained_diffusion_ros.planning.os_scheduling import CLOCK_PRIORITY, EXECUTOR_PRIORITY
+from constrained_diffusion_ros.policy.device import DEVICES
+from constrained_diffusion_ros.policy.runtime import RUNTIMES
+from constrained_diffusion_ros.pusht import PUSHT_ROBOT
+from constrained_diffusion_ros.zones.area import Bounds, RestrictedArea
+from constrained_diffusion_ros.zones.grid import DEFAULT_THRESHOLD, MaskCaps
+from constrained_diffusion_ros.zones.live import DEFAULT_MAX_VERTICES, DEFAULT_MAX_ZONES
+from constrained_diffusion_ros.zones.plugins import load_area
+from msg_schemas.parameters import Param
+from msg_schemas.text import one_line
+
+MODES = ("lockstep", "realtime")
+ROBOT_FIELDS = ("pusher_radius", "kp", "kv", "control_hz", "physics_hz")  # and workspace
+
+PARAMETERS = (
+    Param("model", str(default_model_dir()), "policy directory (config.json + "
+          "model.safetensors)", read_only=True),
+    Param("configuration", "r_g10_p_safe", "constraint configuration, a name from the "
+          "configurations file; settable at run time"),
+    Param("configurations_file", str(config_dir() / "configurations.yaml"),
+          "constraint configurations YAML", read_only=True),
+    Param("noise_seed", 0, "seed of the denoising noise (deterministic trials)", read_only=True,
+          low=0),
+    Param("zone_lifetime", 0.0, "s; a zone not re-published within it expires; 0: never",
+          low=0.0),
+    Param("mode", "lockstep", "lockstep: one setpoint per observation, planned in the "
+          "callback; realtime: one per tick of rate_hz, planned in the background",
+          read_only=True, choices=MODES),
+    Param("rate_hz", 10.0, "realtime: setpoints per second", read_only=True, low=0.1,
+          high=1000.0),
+    Param("lead", -1, "realtime: steps before the chunk runs out at which the next plan "
+          "starts; -1: from the measured planning time", read_only=True, low=-1),
+    Param("prefix_soft", 4, "realtime: waypoints after the committed ones drawn toward the "
+          "chunk in force; -1: no inpainting", read_only=True, low=-1),
+    Param("executor_priority", EXECUTOR_PRIORITY, "realtime: SCHED_FIFO priority of the "
+          f"executor thread, which answers zones and observations (the clock has "
+          f"{CLOCK_PRIORITY}); 0: normal scheduling", read_only=True, low=0, high=98),
+    Param("torch_threads", 1, "torch threads of the planner (1 is best on 2 cores; about "
+          "half the cores on bigger machines)", read_only=True, low=1, high=256),
+    Param("device", "cpu", f"where the network runs: {DEVICES} (the zones stay on the CPU)",
+          read_only=True),
+    Param("runtime", "auto", "what runs the network: onnxruntime (CPU, the fastest at batch "
+          "1), torch, or auto: onnxruntime in realtime, torch in lockstep (bit for bit the "
+          "in-process evaluation); where ONNX Runtime cannot run it faithfully, torch, said in "
+          "one log line", read_only=True, choices=("auto", *RUNTIMES)),
+    Param("planning_process", True, "realtime: plan in a child process, so planning never "
+          "holds the interpreter lock that the clock and zone callbacks need; false: in a "
+          "thread (a restricted_area plug-in that cannot be pickled needs it)", read_only=True),
+    Param("planning_idle", True, "realtime: the planning process at idle priority (SCHED_IDLE: "
+          "whatever else wakes runs first) where the node may raise it again (CAP_SYS_NICE "
+          "or RLIMIT_NICE), and at nice 5 for good once it gets under a quarter of a core; false: "
+          "nice 5 throughout", read_only=True),
+    Param("max_zones", DEFAULT_MAX_ZONES, "zones in force at most; more are refused",
+          read_only=True, low=1),
+    Param("max_vertices", DEFAULT_MAX_VERTICES, "vertices per zone at most", read_only=True,
+          low=3),
+    Param("max_mask_pieces", MaskCaps.pieces, "keep-out mask: pieces (separate regions) at "
+          "most; a finer mask is refused", read_only=True, low=1),
+    Param("max_mask_vertices", MaskCaps.vertices, "keep-out mask: vertices of all its pieces "
+          "at most; a finer mask is refused", read_only=True, low=4),
+    Param("keepout_threshold", DEFAULT_THRESHOLD, "keep-out mask cells at or above it are "
+          "restricted (nav2's occupied threshold, 0..100)", low=1, high=100),
+    Param("restricted_area", "", "a plug-in check always in force: 'package.module:Class' or "
+          "an entry point of group constrained_diffusion_ros.restricted_areas; empty: none",
+          read_only=True),
+    Param("restricted_area_parameters", "", "its keyword arguments, a YAML mapping, e.g. "
+          "'{config_file: camera_zones.yaml}'", read_only=True),
+    # What the planner knows of the robot (PushT's by default), read at start.
+    Param("robot.pusher_radius", float(PUSHT_ROBOT.pusher_radius),
+          "px; zones grown by it keep the pusher's body out", read_only=True, low=0.0),
+    Param("robot.workspace", [float(v) for v in PUSHT_ROBOT.workspace],
+          "px: x_min, y_min, x_max, y_max; outside counts as restricted", read_only=True),
+    Param("robot.kp", float(PUSHT_ROBOT.kp), "PD gain on position (1/s^2)", read_only=True,
+          low=0.0),
+    Param("robot.kv", float(PUSHT_ROBOT.kv), "PD gain on velocity (1/s)", read_only=True,
+          low=0.0),
+    Param("robot.control_hz", float(PUSHT_ROBOT.control_hz), "setpoints per second; stamps "
+          "are control steps at this rate", read_only=True, low=0.1),
+    Param("robot.physics_hz", float(PUSHT_ROBOT.physics_hz), "PD integration rate the shield "
+          "predicts the pusher with", read_only=True, low=0.1),
+)
+
+
+
+def plug_in_area(spec: str, parameters: str, workspace: Bounds) -> RestrictedArea | None:
+    """The plug-in check named by the parameters, probed over `workspace`, or None;
+    ValueError with one line."""
+    if not spec:
+        return None
+    keywords = safe_yaml(parameters, "parameter restricted_area_parameters") \
+        if parameters else {}
+    if not isinstance(keywords, dict):
+        raise ValueError(f"parameter restricted_area_parameters must be a mapping, got "
+                         f"{parameters!r}")
+    return load_area(spec, keywords, workspace=workspace)
+
+
+def check_picklable(area: RestrictedArea | None, spec: str) -> None:
+    """The planning process gets the zones by pickle: a plug-in area that cannot be pickled is
+    refused at start, in one line, rather than failing every plan."""
+    if area is None:
+        return
+    try:
+        pickle.dumps(area)
+    except Exception as error:
+        raise ValueError(f"restricted_area {spec!r} cannot be sent to the planning process "
+                         f"({one_line(error)}); set planning_process:=false") from None

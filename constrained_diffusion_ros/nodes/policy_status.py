@@ -1,0 +1,66 @@
+"""The policy node's status on `/diagnostics`: its counters as key-values, and a level from their
+rise since the last report (ERROR for a setpoint inside a zone, no sound setpoint or planning
+that failed; WARN for refused input or planning that missed its deadline)."""
+
+from __future__ import annotations
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.node import Node
+from std_msgs.msg import Header
+
+from msg_schemas import TOPICS, qos_profile
+
+# Their rise since the last report sets the diagnostic level.
+HEALTH_COUNTERS = ("violations", "unsound_setpoints", "zones_refused", "masks_refused",
+                   "observations_refused", "held_steps", "planning_errors")
+
+
+class StatusReporter:
+    """Publishes the node's counters on `/diagnostics` with the level they call for."""
+
+    def __init__(self, node: Node) -> None:
+        self.node = node
+        self.publisher = node.create_publisher(DiagnosticArray, TOPICS["diagnostics"].name,
+                                               qos_profile(TOPICS["diagnostics"], "publisher"))
+        self._counts: dict[str, int] = {}
+
+    def publish(self, values: dict[str, object]) -> None:
+        level, message = self.health(values)
+        status = DiagnosticStatus(level=level, name=self.node.get_fully_qualified_name(),
+                                  message=message, hardware_id="pusht")
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        stamp = self.node.get_clock().now().to_msg()
+        self.publisher.publish(DiagnosticArray(header=Header(stamp=stamp), status=[status]))
+
+    def health(self, values: dict) -> tuple[bytes, str]:
+        """The diagnostic level since the last report: ERROR if a setpoint sent was inside a
+        zone, WARN if zones were refused or (realtime) steps passed with no plan in time."""
+        counts = {key: int(values.get(key, 0)) for key in HEALTH_COUNTERS}
+        since = {key: counts[key] - self._counts.get(key, 0) for key in counts}
+        self._counts = counts
+        if since["unsound_setpoints"]:
+            return DiagnosticStatus.ERROR, (
+                f"no sound setpoint {since['unsound_setpoints']} time(s) (zones leave no free "
+                f"space, or a non-finite action): the pusher held")
+        if since["violations"]:
+            return DiagnosticStatus.ERROR, f"{since['violations']} setpoint(s) inside a zone"
+        if since["planning_errors"] or values.get("planning_failed"):
+            # ERROR until a plan arrives again: a planner that died stays news until it plans
+            return DiagnosticStatus.ERROR, (
+                f"planning failed ({values['planning_errors']} fault(s), "
+                f"{values['planning_restarts']} restart(s), no plan since): "
+                f"{values['planning_error']}")
+        problems = []
+        if since["zones_refused"]:
+            problems.append(f"{since['zones_refused']} zone message(s) refused")
+        if since["masks_refused"]:
+            problems.append(f"{since['masks_refused']} keep-out mask(s) refused")
+        if since["observations_refused"]:
+            problems.append(f"{since['observations_refused']} observation(s) refused (not "
+                            f"finite, or a pusher that cannot be the robot's)")
+        if since["held_steps"]:
+            problems.append(f"planning missed its deadline ({since['held_steps']} step(s) "
+                            f"with no waypoint)")
+        if problems:
+            return DiagnosticStatus.WARN, "; ".join(problems)
+        return DiagnosticStatus.OK, "running"

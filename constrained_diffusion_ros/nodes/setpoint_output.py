@@ -1,0 +1,66 @@
+"""Setpoints out to ROS for the policy node: one path for every setpoint it sends.
+
+`SetpointOutput` owns the setpoint publisher and the message in force: each setpoint is made
+sound (`SoundSetpoints`), stamped with its observation's stamp, kept as the one in force and
+published now or by the control clock's next tick; a setpoint replaced is never sent after it.
+It counts setpoints that went out inside a zone (`violations`).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+from geometry_msgs.msg import PointStamped
+from rclpy._rclpy_pybind11 import RCLError
+from rclpy.node import Node
+
+from constrained_diffusion_ros.planning.sound_setpoints import SoundSetpoints
+from msg_schemas import TOPICS, qos_profile
+from msg_schemas.conversions import point_message
+
+
+class SetpointOutput:
+    def __init__(self, node: Node, sound: SoundSetpoints) -> None:
+        self.node, self.sound = node, sound
+        self.publisher = node.create_publisher(PointStamped, TOPICS["setpoint"].name,
+                                               qos_profile(TOPICS["setpoint"], "publisher"))
+        self.in_force: PointStamped | None = None
+        self.violations = 0
+        self._lock = threading.Lock()
+
+    def send(self, setpoint: np.ndarray | None, stamp, pusher: np.ndarray | None,
+             publish: bool = True) -> float | None:
+        """`setpoint` (2,) made sound (`pusher`: the last plausible position, for a stand-in),
+        stamped `stamp`, in force from now and published now if `publish`. Returns when it was
+        published (time.monotonic()), or None."""
+        if setpoint is None or stamp is None:
+            return None
+        unsound = self.sound.unsound
+        setpoint = self.sound(setpoint, pusher)
+        if self.sound.unsound != unsound:
+            self.node.get_logger().error("no sound setpoint (zones leave no free space, or a "
+                                         "non-finite action): holding the pusher",
+                                         throttle_duration_sec=1.0)
+        message = point_message(setpoint, stamp)
+        sent = None
+        with self._lock:  # a setpoint replaced is never sent after it
+            self.in_force = message
+            if publish:
+                self.publisher.publish(message)
+                sent = time.monotonic()
+        self.violations += self.sound.inside_zone(setpoint)
+        return sent
+
+    def repeat(self) -> None:
+        """The setpoint in force again (the clock's tick; a lockstep answer that was lost),
+        if there is one; nothing to wait on but the short lock around sending."""
+        with self._lock:
+            if self.in_force is None:
+                return
+            try:
+                self.publisher.publish(self.in_force)
+            except RCLError:  # shutting down: the context went away under the clock
+                if self.node.context.ok():
+                    raise

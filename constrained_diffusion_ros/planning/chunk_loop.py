@@ -1,0 +1,399 @@
+"""The chunk loop: receding-horizon execution of action chunks, the one loop of the evaluation,
+the delay study, lockstep mode and the live node.
+
+The loop is fed observations by control step (a simulated clock in the evaluation and in
+lockstep, the wall clock live) and answers each with the setpoint to execute. It asks a planning
+worker for chunks (`PlanWorker`, plan_jobs.py): `SimulatedPlanning` plans in the caller's thread
+and delivers the plan `delay` control steps later; `PlanningThread` and `PlanningProcess` plan in
+the background and deliver whenever the plan is done. Whatever the worker, the rules are these:
+- a row asks for its next chunk `lead` steps before the chunk in force runs out (the first at
+  once), unless a plan is on its way;
+- a row whose zones changed since its plan, and whose rest of the chunk now lies where the
+  planner keeps waypoints out of, asks for a new plan at once and stops the one in flight
+  (unless that one is such a replan already); so does a live zone that moves the setpoint held;
+- a plan is installed when it arrives, the waypoints whose time has passed skipped
+  (action_queue.py); it is dropped if it is another episode's or configuration's, or if it was
+  planned before zones that it enters (and asked for again);
+- a row without a waypoint holds its last setpoint;
+- every setpoint passes the guard against the zones in force: a waypoint planned before them
+  that they now refuse is moved out of them first (`keep_out`), then the planner's guard (the
+  shield) has the last word.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+import torch
+
+from constrained_diffusion_ros.planning.action_queue import (
+    ActionQueue,
+    ObservationHistory,
+    committed_prefix,
+)
+from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult, PlanWorker
+from constrained_diffusion_ros.planning.planners import ChunkPlanner, ConstrainedPlanner
+from constrained_diffusion_ros.planning.simulated_worker import SimulatedPlanning
+from constrained_diffusion_ros.zones.area import RestrictedArea
+from constrained_diffusion_ros.zones.geometry import leaves_no_room
+from constrained_diffusion_ros.zones.live import LiveZones
+
+HANDOVERS = ("sync", "async", "async_prefix")
+
+WorkerFactory = Callable[[ChunkPlanner, Callable[[PlanResult], None]], PlanWorker]
+
+
+class ZoneSource(Protocol):
+    """The zones in force for a batch of episodes, and a version that changes with them."""
+
+    def area_at(self, step: int) -> RestrictedArea | None:
+        """The zones at control step `step` (a batch-aware area, or one area for every
+        episode), or None when there are none."""
+        ...
+
+    def version_at(self, step: int) -> int | np.ndarray:
+        """Equal versions (one, or one per episode) mean equal zones."""
+        ...
+
+
+def warm_up(planner: ConstrainedPlanner) -> None:
+    """Runs the zone reaction's computing once on a scratch zone: a new zone is then not the
+    first to pay for lazy imports and first calls, time the node's executor holds the
+    interpreter while the clock waits for it. Leaves the planner as it found it (its shield
+    reset)."""
+    robot = planner.robot
+    x_min, y_min, x_max, y_max = robot.workspace
+    centre, half = np.array([(x_min + x_max) / 2, (y_min + y_max) / 2]), (x_max - x_min) / 8
+    scratch = LiveZones(workspace=robot.workspace)
+    scratch.apply([("warm_up", [tuple(centre + half * np.array(corner))
+                                for corner in ((-1, -1), (1, -1), (1, 1), (-1, 1))])], 0.0)
+    area, point = scratch.area_at(0), centre[None]
+    leaves_no_room(scratch.snapshot().geometry, robot.workspace, robot.pusher_radius)
+    planner.violates(torch.from_numpy(point[None]), area, np.array([0]))
+    observation = np.zeros((1, planner.policy_config.obs_dim))
+    planner.guard(area, observation, planner.keep_out(area, point), 0)
+    planner.reset()
+
+
+@dataclass
+class LoopStats:
+    plans_asked: int = 0  # planning jobs submitted
+    plans_installed: int = 0  # episode-chunks installed
+    plans_dropped: int = 0  # episode-chunks stale on arrival (episode, configuration, zones)
+    planned_chunks: int = 0  # episode-chunks planned (a batched job of R rows counts R)
+    planner_calls: int = 0  # plans that arrived
+    planning_s: float = 0.0  # wall time planning took, summed over the plans that arrived
+    last_plan_ms: float = float("nan")
+    held_steps: int = 0  # row-steps with no waypoint to execute (the last setpoint held)
+    zone_reactions: int = 0  # setpoints changed at once because zones changed
+
+
+class ChunkLoop:
+    """Plans a chunk per episode (B rows) and executes `n_action_steps` of its waypoints from
+    `first_executed` on (the reference's convention).
+
+    `handover` says what a row does while its next plan is made: "sync" holds its last
+    setpoint and starts the chunk when it arrives; "async" goes on with the chunk in force, and
+    the new one skips the steps that passed; "async_prefix" too, with the waypoints committed
+    meanwhile inpainted into the new chunk (`committed_prefix`, `soft` more drawn toward the
+    chunk in force). `lead`: steps before the chunk runs out at which the next plan is asked
+    for (sync: 0); None: from the measured planning time at `rate_hz`.
+
+    Call everything from one thread; a background worker's results wait until
+    `install_results` (or the next `observe`) takes them, and `wake` is called when one arrives.
+    """
+
+    def __init__(self, planner: ChunkPlanner, make_worker: WorkerFactory,
+                 zones: ZoneSource | None = None, handover: str = "async_prefix",
+                 lead: int | None = None, soft: int = 4, rate_hz: float = 10.0,
+                 noise_seed: int | None = None,
+                 wake: Callable[[], None] = lambda: None) -> None:
+        if handover not in HANDOVERS:
+            raise ValueError(f"handover must be one of {HANDOVERS}, got {handover!r}")
+        config = planner.policy_config
+        if lead is not None and not 0 <= lead <= config.n_action_steps:
+            raise ValueError(f"lead must be in [0, n_action_steps], got {lead}")
+        self.planner, self.zones, self.handover = planner, zones, handover
+        self.fixed_lead = 0 if handover == "sync" else lead
+        self.soft, self.rate_hz, self.noise_seed, self.wake = soft, rate_hz, noise_seed, wake
+        self.n_obs_steps, self.first_executed = config.n_obs_steps, config.first_executed
+        self.n_action_steps = config.n_action_steps
+        self.stats = LoopStats()
+        self.plan_seconds = 0.0  # running estimate of one planning call
+        self.generation = 0  # episodes and configurations: a plan from another is dropped
+        self._results: list[PlanResult] = []  # arrived (or simulated: on their way)
+        self._results_lock = threading.Lock()
+        self.single = False  # observations come one at a time: answers are (2,)
+        self.worker = make_worker(planner, self._on_result)
+        self.history: ObservationHistory | None = None
+        self.step: int | None = None  # the newest observation's control step
+
+    @classmethod
+    def simulated(cls, planner: ChunkPlanner, zones: ZoneSource | None = None,
+                  generator: torch.Generator | None = None, delay: int = 0,
+                  handover: str = "sync", noise_seed: int | None = None) -> ChunkLoop:
+        """The loop on a simulated clock, as the evaluation, the delay study and lockstep mode
+        run it: plans made in the caller's thread from `generator`, ready `delay` steps after
+        they are asked for, the next asked `delay` steps before the chunk runs out (sync: when
+        it has)."""
+        return cls(planner, SimulatedPlanning.factory(generator, delay), zones, handover,
+                   lead=delay, noise_seed=noise_seed)
+
+    # -- inputs ------------------------------------------------------------------------------
+
+    @torch.inference_mode()  # no autograd here: less overhead per torch call
+    def observe(self, step: int, observations: np.ndarray) -> np.ndarray:
+        """The observations (B, obs_dim) of control step `step` (or one, (obs_dim,)) -> the
+        setpoints to execute, (B, 2) (or (2,)). An earlier step than the newest starts a new
+        episode. Also kept: `setpoints`, `wanted` (before the guard), `waiting` (rows with no
+        waypoint), `handed_over` (rows whose setpoint is a new chunk's first)."""
+        self.single = np.ndim(observations) == 1
+        observations = np.atleast_2d(observations)
+        if self.step is not None and step < self.step:
+            self.reset()
+        first = self.history is None
+        if first:
+            self._start(observations)
+        else:
+            self.history.push(observations, step - self.step)
+        self.step = step
+        self._install(self._take_results())
+        if first:  # the episode's first plans, at once (a plan still stopping is the last's)
+            self._ask(np.arange(len(observations)))
+        else:
+            self._ask_due()
+        self._install(self._take_results())  # a plan ready at once (a simulated delay of 0)
+        self.waiting = np.isnan(self.queue.at(step)).any(axis=-1)
+        self.stats.held_steps += int(self.waiting.sum())
+        return self._answer(self._update())
+
+    def reset(self, noise_seed: int | None = None) -> None:
+        """A new episode: forget its chunks, observations and the guard's history, drop any
+        plan in flight and reseed the noise (with `noise_seed`, else the loop's, if any)."""
+        self.generation += 1
+        self.history, self.step = None, None
+        self.planner.reset()
+        seed = self.noise_seed if noise_seed is None else noise_seed
+        if seed is not None:
+            self.worker.reseed(seed)
+
+    def use_planner(self, planner: ChunkPlanner) -> None:
+        """Another configuration: plans in flight are dropped and a new one asked for; the
+        chunk in force executes until it arrives."""
+        self.planner = planner
+        self.worker.use(planner)
+        self.generation += 1
+        if self.step is not None:
+            self.replanning[:] = None
+            self._ask(np.arange(len(self.queue.end)), replan=True)
+
+    @torch.inference_mode()
+    def zones_changed(self) -> np.ndarray | None:
+        """Zones changed (live): the setpoints held are guarded again against them and
+        returned if that changed them, to be sent at once, else None. What to plan for them is
+        left to `install_results`, which `wake` gets called: a row whose held setpoint they
+        refuse, or the rest of whose chunk they enter, asks for a new plan then."""
+        if self.step is None:
+            return None
+        before = self.setpoints
+        after = self._update()
+        moved = (after != before).any(axis=-1)
+        if moved.any():
+            self.stats.zone_reactions += 1
+            self.held_refused[moved] |= self._refused(before[moved][:, None],
+                                                      np.nonzero(moved)[0])[:, 0]
+        self.wake()
+        return self._answer(after) if moved.any() else None
+
+    @torch.inference_mode()
+    def install_results(self) -> np.ndarray | None:
+        """Install the plans that arrived and ask for what is due; the setpoints now in force,
+        or None if no plan came."""
+        if self.step is None:
+            return None
+        results = self._take_results()
+        self._install(results)
+        self._ask_due()
+        return self._answer(self._update()) if results else None
+
+    # -- outputs -----------------------------------------------------------------------------
+
+    @property
+    def lead(self) -> int:
+        """Steps before the chunk runs out at which the next plan is asked for."""
+        if self.fixed_lead is not None:
+            return self.fixed_lead
+        delay = max(1, int(np.ceil(self.plan_seconds * self.rate_hz)))
+        return int(min(self.n_action_steps, delay + 1))
+
+    @property
+    def chunk(self) -> np.ndarray:
+        """(N, 2) the waypoints of the first row's chunk in force (NaN before the first)."""
+        return self.queue.waypoints[0]
+
+    def status(self) -> dict[str, object]:
+        """The loop's and its worker's counters, for diagnostics (`planning_error`: the
+        worker's last fault, or None)."""
+        stats, worker = self.stats, self.worker
+        return {"plans": stats.plans_installed, "plans_dropped": stats.plans_dropped,
+                "plans_cancelled": worker.cancelled, "waypoints_skipped": self.queue.skipped,
+                "held_steps": stats.held_steps, "zone_reactions": stats.zone_reactions,
+                "lead": self.lead, "planning_priority": worker.priority,
+                "planning_errors": worker.errors, "planning_failed": worker.failed,
+                "planning_restarts": worker.restarts, "planning_error": worker.error}
+
+    def shutdown(self) -> None:
+        self.worker.shutdown()
+
+    # -- internals ---------------------------------------------------------------------------
+
+    def _start(self, observations: np.ndarray) -> None:
+        batch = len(observations)
+        self.history = ObservationHistory(observations, self.n_obs_steps)
+        self.queue = ActionQueue(batch, self.n_action_steps)
+        self.planned_version = np.zeros(batch, dtype=np.int64)  # zones each chunk was planned for
+        self.replanning = np.full(batch, None, dtype=object)  # the replan job on its way, if any
+        self.setpoints = self.planner.robot.pusher(self.history.latest).astype(float)
+        self.wanted = self.setpoints.copy()
+        self.executed_id = np.full(batch, -1)  # the chunk (install count) executed; -1: held
+        self.handed_over = np.zeros(batch, dtype=bool)
+        self.waiting = np.ones(batch, dtype=bool)
+        self.held_refused = np.zeros(batch, dtype=bool)  # zones moved these held setpoints
+
+    def _answer(self, setpoints: np.ndarray) -> np.ndarray:
+        return setpoints[0] if self.single else setpoints
+
+    def _zones_now(self) -> tuple[RestrictedArea | None, np.ndarray]:
+        rows = len(self.queue.end)
+        if self.zones is None:
+            return None, np.zeros(rows, dtype=np.int64)
+        version = np.broadcast_to(self.zones.version_at(self.step), (rows,))
+        return self.zones.area_at(self.step), version
+
+    def _refused(self, waypoints: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """(R, N) which waypoints (R, N, 2) of `rows` lie where the planner keeps waypoints out
+        of under the zones in force."""
+        area, _ = self._zones_now()
+        zones = None if area is None else area.select_rows(rows)
+        return self.planner.violates(torch.from_numpy(waypoints), zones, rows).numpy()
+
+    def _ask_due(self) -> None:
+        """Ask for the rows that are due: running out (and no plan on its way), or with zones
+        on the rest of their chunk (or that refused their held setpoint) and no replan on its
+        way."""
+        planning = self._planning()
+        self.replanning[~planning] = None  # nothing on its way: a replan that failed is not coming
+        remaining = self.queue.remaining(self.step)
+        _, version = self._zones_now()
+        entered, self.held_refused = self.held_refused, np.zeros(len(remaining), dtype=bool)
+        check = np.nonzero(~entered & (version != self.planned_version) & (remaining > 0))[0]
+        if len(check):
+            entered[check] = self.queue.rest_refused(
+                check, self.step, lambda waypoints: self._refused(waypoints, check))
+        entered &= np.array([job is None for job in self.replanning])
+        ask = ((remaining <= self.lead) & ~planning) | entered
+        if ask.any():
+            self._ask(np.nonzero(ask)[0], replan=entered[ask])
+
+    def _ask(self, rows: np.ndarray, replan: np.ndarray | bool = False) -> None:
+        """Submit a plan for `rows` from their newest observations; `replan` rows are planned
+        free of the chunk in force (it was planned for other zones or another configuration)
+        and stop the plan in flight."""
+        replan = np.broadcast_to(replan, rows.shape)
+        area, version = self._zones_now()
+        prefix = None
+        if self.handover == "async_prefix" and self.lead > 0 and self.soft >= 0:
+            prefix = committed_prefix(self.queue, rows, self.step, self.lead, self.soft,
+                                      self.first_executed, free=replan)
+        job = PlanJob(self.generation, self.step, self.history.tensor(rows),
+                      None if area is None else area.select_rows(rows), version[rows].copy(),
+                      prefix, rows)
+        self.stats.plans_asked += 1
+        if self.handover == "sync":  # the robot waits for the plan, which starts when ready
+            self.queue.clear(rows)
+        self.replanning[rows[replan]] = job
+        self.worker.submit(job, cancel=bool(replan.any()))
+
+    def _planning(self) -> np.ndarray:
+        """(B,) rows with a plan on its way: being planned, or arrived and not installed."""
+        planning = np.full(len(self.queue.end), self.worker.busy)
+        with self._results_lock:
+            for result in self._results:
+                if result.job.generation == self.generation:
+                    planning[result.job.rows] = True
+        return planning
+
+    def _on_result(self, result: PlanResult) -> None:
+        """From the worker (its own thread, or the caller's): kept until taken."""
+        with self._results_lock:
+            self._results.append(result)
+        self.wake()
+
+    def _take_results(self) -> list[PlanResult]:
+        """The results ready by the newest step (a simulated worker's wait for their step)."""
+        ready, later = [], []
+        with self._results_lock:
+            for result in self._results:
+                due = result.ready_step is None or (self.step is not None
+                                                    and result.ready_step <= self.step)
+                (ready if due else later).append(result)
+            self._results = later
+        return ready
+
+    def _install(self, results: list[PlanResult]) -> None:
+        for result in results:
+            job, chunks = result.job, result.chunk
+            self.plan_seconds = (result.seconds if self.plan_seconds == 0.0
+                                 else 0.7 * self.plan_seconds + 0.3 * result.seconds)
+            self.stats.last_plan_ms = 1000 * result.seconds
+            self.stats.planning_s += result.seconds
+            self.stats.planned_chunks += len(job.rows)
+            self.stats.planner_calls += 1
+            if job.generation != self.generation or self.history is None:
+                self.stats.plans_dropped += len(job.rows)
+                continue
+            rows = job.rows
+            mine = np.array([self.replanning[row] is job for row in rows], dtype=bool)
+            self.replanning[rows[mine]] = None
+            _, version = self._zones_now()
+            stale = job.zone_version != version[rows]
+            if stale.any():  # planned before zones that it enters: dropped, asked for again
+                stale[stale] = self._refused(chunks[stale], rows[stale]).any(axis=1)
+            if stale.any():
+                self.stats.plans_dropped += int(stale.sum())
+                again = rows[stale]
+                free = np.array([self.replanning[row] is None for row in again], dtype=bool)
+                if free.any():
+                    self._ask(again[free], replan=True)
+            keep = ~stale
+            first = self.step if self.handover == "sync" else job.step
+            self.queue.install(rows[keep], chunks[keep], first, self.step)
+            self.planned_version[rows[keep]] = job.zone_version[keep]
+            self.stats.plans_installed += int(keep.sum())
+
+    def _update(self) -> np.ndarray:
+        """The setpoints of the newest step from the chunks in force (the ones held where a row
+        has none), through the guard."""
+        waypoints, waiting = self.queue.at_or(self.step, self.setpoints)
+        chunk = np.where(waiting, -1, self.queue.installs)
+        self.handed_over = (chunk != self.executed_id) & ~waiting
+        self.executed_id = chunk
+        self.wanted = waypoints
+        area, version = self._zones_now()
+        older = np.nonzero(version != self.planned_version)[0]
+        if area is not None and len(older):  # waypoints planned before these zones
+            points = waypoints[older]
+            refused = self._refused(points[:, None], older)[:, 0]
+            if refused.any():
+                waypoints = waypoints.copy()
+                moved = older[refused]
+                waypoints[moved] = self.planner.keep_out(area.select_rows(moved),
+                                                         points[refused])
+        # The guard sees the positions as the planner saw them (float32 observations).
+        self.setpoints = self.planner.guard(area, self.history.latest, waypoints, self.step)
+        return self.setpoints
+

@@ -1,12 +1,12 @@
 """What planning latency costs, measured deterministically: `latency --help`.
 
 The batched evaluation with an inference delay of d control steps (the chunk asked for at step
-t, from t's observation, is ready at t + d) and three handovers (`ChunkLoop`, the loop the policy node runs): sync (the
-robot waits for the plan, as the policy node did when it planned in its callback), async (the
-chunk in force goes on; the new one skips the steps that passed) and async_prefix (async with
-the committed waypoints inpainted into the new chunk). Reports s, r, r_body and the jump at
-chunk handovers (the distance between consecutive setpoints where a new chunk takes over,
-against the same within a chunk) and writes docs/latency.md and latency.json.
+t, from t's observation, is ready at t + d), run by the policy node's own loop (`ChunkLoop`)
+with a simulated worker, and three handovers: sync (the robot waits for the plan, holding its
+setpoint), async (the chunk in force goes on; the new one skips the steps that passed) and
+async_prefix (async with the committed waypoints inpainted into the new chunk). Reports s, r,
+r_body and the jump at chunk handovers (the distance between consecutive setpoints where a new
+chunk takes over, against the same within a chunk) and writes docs/latency.md and latency.json.
 """
 
 from __future__ import annotations

@@ -202,10 +202,10 @@ class ChunkLoop:
         before = self.setpoints
         after = self._update()
         moved = (after != before).any(axis=-1)
-        if moved.any():
+        if moved.any():  # whether the zones refuse where it was: judged when asking, not now
             self.stats.zone_reactions += 1
-            self.held_refused[moved] |= self._refused(before[moved][:, None],
-                                                      np.nonzero(moved)[0])[:, 0]
+            first = moved & ~self.held_moved
+            self.held_before[first], self.held_moved[first] = before[first], True
         self.wake()
         return self._answer(after) if moved.any() else None
 
@@ -262,7 +262,9 @@ class ChunkLoop:
         self.executed_id = np.full(batch, -1)  # the chunk (install count) executed; -1: held
         self.handed_over = np.zeros(batch, dtype=bool)
         self.waiting = np.ones(batch, dtype=bool)
-        self.held_refused = np.zeros(batch, dtype=bool)  # zones moved these held setpoints
+        # Setpoints that zones moved since the last asking, and where they were before.
+        self.held_moved = np.zeros(batch, dtype=bool)
+        self.held_before = np.zeros((batch, 2))
 
     def _answer(self, setpoints: np.ndarray) -> np.ndarray:
         return setpoints[0] if self.single else setpoints
@@ -289,7 +291,11 @@ class ChunkLoop:
         self.replanning[~planning] = None  # nothing on its way: a replan that failed is not coming
         remaining = self.queue.remaining(self.step)
         _, version = self._zones_now()
-        entered, self.held_refused = self.held_refused, np.zeros(len(remaining), dtype=bool)
+        entered = np.zeros(len(remaining), dtype=bool)
+        moved = np.nonzero(self.held_moved)[0]
+        if len(moved):  # zones came onto the setpoints held before them
+            entered[moved] = self._refused(self.held_before[moved][:, None], moved)[:, 0]
+            self.held_moved[:] = False
         check = np.nonzero(~entered & (version != self.planned_version) & (remaining > 0))[0]
         if len(check):
             entered[check] = self.queue.rest_refused(

@@ -7,6 +7,8 @@ setpoint), async (the chunk in force goes on; the new one skips the steps that p
 async_prefix (async with the committed waypoints inpainted into the new chunk). Reports s, r,
 r_body and the jump at chunk handovers (the distance between consecutive setpoints where a new
 chunk takes over, against the same within a chunk) and writes docs/latency.md and latency.json.
+With `--every-tick`, also every_tick: a plan asked at every observation that finds none on its
+way (async_prefix, the waypoints due before it arrives held fixed).
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from constrained_diffusion_ros.evaluation.runner import (
 )
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
-from constrained_diffusion_ros.planning.chunk_loop import HANDOVERS
+from constrained_diffusion_ros.planning.chunk_loop import EVERY_TICK, HANDOVERS
 from constrained_diffusion_ros.planning.config import load_configurations
 from constrained_diffusion_ros.policy.weights import load_policy
 
@@ -52,6 +54,12 @@ def build_parser() -> argparse.ArgumentParser:
                         help="scenario names from config/scenarios.yaml")
     parser.add_argument("--delays", nargs="+", type=int, default=[0, 1, 2, 4],
                         help="inference delays, control steps")
+    parser.add_argument("--every-tick", nargs="*", default=["ddim10_r_g10_p_safe"],
+                        metavar="CONFIG",
+                        help="configurations also run with a plan asked at every tick "
+                             "(every_tick: async_prefix from the newest observation; d=0 and "
+                             "1 plan at every step, so a DDPM configuration takes 8 times as "
+                             "long)"),
     parser.add_argument("--episodes", type=positive_int, default=len(DEFAULT_SEEDS),
                         help="seeds from 100000 on")
     parser.add_argument("--steps", type=positive_int, default=200,
@@ -75,8 +83,12 @@ def run(args: argparse.Namespace) -> int:
     scenarios = [known_scenarios[n] for n in args.scenarios]
     policy = load_policy(args.model)
     seeds = list(range(DEFAULT_SEEDS[0], DEFAULT_SEEDS[0] + args.episodes))
+    unknown = [n for n in args.every_tick if n not in args.configs]
+    if unknown:
+        raise ValueError(f"--every-tick names configurations not in --configs: {unknown}")
     runs = [(c, d, h) for c in args.configs for d in args.delays
-            for h in (HANDOVERS if d > 0 else HANDOVERS[:1])]
+            for h in (*(HANDOVERS if d > 0 else HANDOVERS[:1]),
+                      *((EVERY_TICK,) if c in args.every_tick else ()))]
     output = Path(args.output)
     output.mkdir(parents=True, exist_ok=True)
     rows = kept_rows(output / "latency.json", args.configs)
@@ -91,7 +103,8 @@ def run(args: argparse.Namespace) -> int:
             cell = by_scenario[scenario.name]
             jump, within = handover_jumps(log.commanded[block], log.executed_chunk[block])
             rows.append({"configuration": name, "scenario": scenario.name, "delay": delay,
-                         "handover": handover if delay else "none", "s": cell.s,
+                         "handover": handover if delay or handover == EVERY_TICK else "none",
+                         "s": cell.s,
                          "r": cell.r, "r_body": cell.r_body,
                          "jump_at_handover_px": jump, "step_within_chunk_px": within,
                          "episodes": len(seeds)})
@@ -123,12 +136,13 @@ def markdown(rows: list[dict], args: argparse.Namespace) -> str:
         "A chunk asked for at step t is ready at t + d. sync: the robot holds its setpoint "
         "until the plan is in. async: the chunk in force goes on and the new one skips the "
         "steps that passed. async_prefix: async with the committed waypoints inpainted into "
-        "the new chunk (4 soft ones after them). Jump: mean distance between consecutive "
-        "setpoints where a new chunk takes over; step: the same within a chunk (px). r counts "
-        "setpoints inside a zone, r_body steps with the pusher's disc overlapping one. The "
-        "chunk loop the policy node runs live (planning/chunk_loop.py) runs it, with a simulated "
-        "worker whose plans arrive after d steps; live, they arrive when the planning process "
-        "is done.",
+        "the new chunk (4 soft ones after them). every_tick: async_prefix with a plan asked "
+        "at every step that has none on its way (a fresh plan every step at d = 0 and 1). "
+        "Jump: mean distance between consecutive setpoints where a new chunk takes over; "
+        "step: the same within a chunk (px). r counts setpoints inside a zone, r_body steps "
+        "with the pusher's disc overlapping one. The chunk loop the policy node runs live "
+        "(planning/chunk_loop.py) runs it, with a simulated worker whose plans arrive after "
+        "d steps; live, they arrive when the planning process is done.",
         "",
         "| configuration | scenario | d | handover | s | r | r_body | jump px | step px |",
         "|---|---|---|---|---|---|---|---|---|",

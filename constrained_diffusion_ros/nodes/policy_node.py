@@ -157,7 +157,8 @@ class PolicyNode(Node):
             (lambda planner, on_result: PlanningThread(planner, on_result, seed)),
             self.zones, lead=None if lead < 0 else lead, soft=self.values["prefix_soft"],
             rate_hz=self.rate_hz, noise_seed=seed,
-            wake=self.create_guard_condition(self._on_plan_ready).trigger)
+            wake=self.create_guard_condition(self._on_plan_ready).trigger,
+            every_tick=self.values["replan_every_tick"])
 
     def _on_parameters(self, parameters) -> SetParametersResult:
         for parameter in parameters:

@@ -39,6 +39,10 @@ PARAMETERS = (
           high=1000.0),
     Param("lead", -1, "realtime: steps before the chunk runs out at which the next plan "
           "starts; -1: from the measured planning time", read_only=True, low=-1),
+    Param("replan_every_tick", False, "realtime: ask for a new plan at every observation that "
+          "finds none on its way (the waypoints due before it arrives held fixed), not only "
+          "lead steps before the chunk runs out; planning then runs all the time",
+          read_only=True),
     Param("prefix_soft", 4, "realtime: waypoints after the committed ones drawn toward the "
           "chunk in force; -1: no inpainting", read_only=True, low=-1),
     Param("executor_priority", EXECUTOR_PRIORITY, "realtime: SCHED_FIFO priority of the "

@@ -43,6 +43,7 @@ from constrained_diffusion_ros.zones.geometry import leaves_no_room
 from constrained_diffusion_ros.zones.live import LiveZones
 
 HANDOVERS = ("sync", "async", "async_prefix")
+EVERY_TICK = "every_tick"  # a simulated schedule: async_prefix, a plan asked at every tick
 
 WorkerFactory = Callable[[ChunkPlanner, Callable[[PlanResult], None]], PlanWorker]
 
@@ -101,7 +102,11 @@ class ChunkLoop:
     the new one skips the steps that passed; "async_prefix" too, with the waypoints committed
     meanwhile inpainted into the new chunk (`committed_prefix`, `soft` more drawn toward the
     chunk in force). `lead`: steps before the chunk runs out at which the next plan is asked
-    for (sync: 0); None: from the measured planning time at `rate_hz`.
+    for (sync: 0); None: from the measured planning time at `rate_hz`. `every_tick`: a row asks
+    for a new plan at every observation that finds none on its way, from that observation,
+    with the waypoints that will execute before it arrives (`delay` steps, or the measured
+    planning time) held fixed: a zone is planned around as soon as planning allows, not at the
+    next chunk.
 
     Call everything from one thread; a background worker's results wait until
     `install_results` (or the next `observe`) takes them, and `wake` is called when one arrives.
@@ -111,14 +116,18 @@ class ChunkLoop:
                  zones: ZoneSource | None = None, handover: str = "async_prefix",
                  lead: int | None = None, soft: int = 4, rate_hz: float = 10.0,
                  noise_seed: int | None = None,
-                 wake: Callable[[], None] = lambda: None) -> None:
+                 wake: Callable[[], None] = lambda: None, every_tick: bool = False,
+                 delay: int | None = None) -> None:
         if handover not in HANDOVERS:
             raise ValueError(f"handover must be one of {HANDOVERS}, got {handover!r}")
         config = planner.policy_config
         if lead is not None and not 0 <= lead <= config.n_action_steps:
             raise ValueError(f"lead must be in [0, n_action_steps], got {lead}")
         self.planner, self.zones, self.handover = planner, zones, handover
+        if every_tick and handover == "sync":
+            raise ValueError("every_tick needs an asynchronous handover")
         self.fixed_lead = 0 if handover == "sync" else lead
+        self.every_tick, self.fixed_delay = every_tick, delay
         self.soft, self.rate_hz, self.noise_seed, self.wake = soft, rate_hz, noise_seed, wake
         self.n_obs_steps, self.first_executed = config.n_obs_steps, config.first_executed
         self.n_action_steps = config.n_action_steps
@@ -135,13 +144,16 @@ class ChunkLoop:
     @classmethod
     def simulated(cls, planner: ChunkPlanner, zones: ZoneSource | None = None,
                   generator: torch.Generator | None = None, delay: int = 0,
-                  handover: str = "sync", noise_seed: int | None = None) -> ChunkLoop:
+                  handover: str = "sync", noise_seed: int | None = None,
+                  every_tick: bool = False) -> ChunkLoop:
         """The loop on a simulated clock, as the evaluation, the delay study and lockstep mode
         run it: plans made in the caller's thread from `generator`, ready `delay` steps after
         they are asked for, the next asked `delay` steps before the chunk runs out (sync: when
-        it has)."""
+        it has); `handover` EVERY_TICK: async_prefix with `every_tick`."""
+        if handover == EVERY_TICK:
+            handover, every_tick = "async_prefix", True
         return cls(planner, SimulatedPlanning.factory(generator, delay), zones, handover,
-                   lead=delay, noise_seed=noise_seed)
+                   lead=delay, noise_seed=noise_seed, every_tick=every_tick, delay=delay)
 
     # -- inputs ------------------------------------------------------------------------------
 
@@ -225,10 +237,19 @@ class ChunkLoop:
     @property
     def lead(self) -> int:
         """Steps before the chunk runs out at which the next plan is asked for."""
+        if self.every_tick:
+            return self.n_action_steps
         if self.fixed_lead is not None:
             return self.fixed_lead
-        delay = max(1, int(np.ceil(self.plan_seconds * self.rate_hz)))
-        return int(min(self.n_action_steps, delay + 1))
+        return int(min(self.n_action_steps, self.delay_steps + 1))
+
+    @property
+    def delay_steps(self) -> int:
+        """Control steps a plan is expected to take: the simulated delay, or the measured
+        planning time (at least 1)."""
+        if self.fixed_delay is not None:
+            return self.fixed_delay
+        return max(1, int(np.ceil(self.plan_seconds * self.rate_hz)))
 
     @property
     def chunk(self) -> np.ndarray:
@@ -312,8 +333,12 @@ class ChunkLoop:
         replan = np.broadcast_to(replan, rows.shape)
         area, version = self._zones_now()
         prefix = None
-        if self.handover == "async_prefix" and self.lead > 0 and self.soft >= 0:
-            prefix = committed_prefix(self.queue, rows, self.step, self.lead, self.soft,
+        # The waypoints that execute before the plan arrives: until the chunk's end at the
+        # latest when asked `lead` steps before it, `delay_steps` when asked at every tick.
+        committed = self.delay_steps if self.every_tick else self.lead
+        if self.handover == "async_prefix" and (self.lead > 0 or self.every_tick) \
+                and self.soft >= 0:
+            prefix = committed_prefix(self.queue, rows, self.step, committed, self.soft,
                                       self.first_executed, free=replan)
         job = PlanJob(self.generation, self.step, self.history.tensor(rows),
                       None if area is None else area.select_rows(rows), version[rows].copy(),

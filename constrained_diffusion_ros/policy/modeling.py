@@ -12,6 +12,8 @@ from constrained_diffusion_ros.policy.normalizer import MinMaxNormalizer
 from constrained_diffusion_ros.policy.schedulers import make_scheduler
 from constrained_diffusion_ros.policy.unet import ConditionalUnet1D
 
+FILM_ROWS = 4096  # (steps x batch) FiLM rows a plan computes at once at most (60 MB at 3584)
+
 
 class DiffusionPolicy(nn.Module):
     """Predicts action chunks from an observation history by denoising (epsilon prediction)."""
@@ -33,21 +35,27 @@ class DiffusionPolicy(nn.Module):
         self.action_normalizer = MinMaxNormalizer.from_dict(config.normalizer["action"])
         self.train_scheduler = make_scheduler(config, "ddpm")
         # Where the network runs at inference when not in torch (runtime.py's `use_runtime`):
-        # a callable like `unet`, or None for torch.
-        self.fast: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor] | None \
-            = None
+        # (sample, one step's FiLM outputs) -> noise, as `unet.forward_filmed`; None: torch.
+        self.fast: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None
 
     @property
     def device(self) -> torch.device:
         """Where the network's weights are (the CPU unless moved)."""
         return next(self.unet.parameters()).device
 
-    def denoise(self, sample: torch.Tensor, timestep: torch.Tensor,
-                cond: torch.Tensor) -> torch.Tensor:
-        """The predicted noise at inference: the U-Net, on the runtime chosen for it."""
+    def denoiser(self, timesteps: torch.Tensor, cond: torch.Tensor
+                 ) -> Callable[[torch.Tensor, int], torch.Tensor]:
+        """The network for one plan, at inference: (sample, index into `timesteps`) -> the
+        predicted noise. On a fast runtime the FiLM outputs, which depend only on the step and
+        `cond`, are computed once for all the plan's steps (up to FILM_ROWS rows at once)."""
         if self.fast is None:
-            return self.unet(sample, timestep, cond)
-        return self.fast(sample, timestep, cond)
+            return lambda sample, index: self.unet(sample, timesteps[index], cond)
+        fast = self.fast
+        if len(timesteps) * len(cond) <= FILM_ROWS:
+            films = self.unet.films(timesteps, cond)
+            return lambda sample, index: fast(sample, films[index])
+        return lambda sample, index: fast(sample, self.unet.films(timesteps[index:index + 1],
+                                                                  cond)[0])
 
     def condition(self, obs_history: torch.Tensor) -> torch.Tensor:
         """(B, n_obs_steps, obs_dim) raw observations -> (B, global_cond_dim) network condition."""

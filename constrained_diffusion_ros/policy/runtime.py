@@ -2,8 +2,10 @@
 
 A robot plans one chunk at a time, and at batch 1 a forward of the U-Net in torch's eager mode
 is mostly the overhead of dispatching its few hundred small operations. ONNX Runtime runs the
-same network, exported from the loaded weights, with much less of it
-(`scripts/bench_planning.py` measures both). The graph is exported at load, in memory, and
+same network, exported from the loaded weights, with much less of it, and without what depends
+only on the step and the observation (the FiLM scales and biases of every block, a third of the
+weights): those are computed once per plan for all its steps (`DiffusionPolicy.denoiser`;
+`scripts/bench_planning.py` measures both). The graph is exported at load, in memory, and
 checked against torch on probe inputs before it is used: a runtime that is missing, cannot run
 the network, or disagrees with torch by more than TOLERANCE is not used, and one log line says
 why (never silently).
@@ -34,7 +36,8 @@ LOGGER = logging.getLogger(__name__)
 
 
 class OnnxDenoiser:
-    """The U-Net as an ONNX Runtime session: (sample, timestep, cond) -> noise, as torch."""
+    """The U-Net with its FiLM given (`ConditionalUnet1D.forward_filmed`) as an ONNX Runtime
+    session: (sample, films) -> noise, as torch."""
 
     def __init__(self, graph: bytes) -> None:
         self.graph = graph
@@ -46,13 +49,23 @@ class OnnxDenoiser:
     def __setstate__(self, state: dict) -> None:
         self.graph, self._session = state["graph"], None
 
-    def __call__(self, sample: Tensor, timestep: Tensor, cond: Tensor) -> Tensor:
+    def __call__(self, sample: Tensor, films: Tensor) -> Tensor:
         if self._session is None:
             self._session = open_session(self.graph, torch.get_num_threads())
         feed = {"sample": sample.detach().cpu().numpy().astype(np.float32, copy=False),
-                "timestep": np.asarray(timestep.detach().cpu(), dtype=np.int64).reshape(1),
-                "cond": cond.detach().cpu().numpy().astype(np.float32, copy=False)}
+                "films": films.detach().cpu().numpy().astype(np.float32, copy=False)}
         return torch.from_numpy(self._session.run(None, feed)[0])
+
+
+class FilmedUnet(torch.nn.Module):
+    """What is exported: the U-Net from the noisy sample and one step's FiLM outputs."""
+
+    def __init__(self, unet: torch.nn.Module) -> None:
+        super().__init__()
+        self.unet = unet
+
+    def forward(self, sample: Tensor, films: Tensor) -> Tensor:
+        return self.unet.forward_filmed(sample, films)
 
 
 def open_session(graph: bytes, threads: int):
@@ -69,34 +82,41 @@ def open_session(graph: bytes, threads: int):
 
 
 def export_onnx(policy: DiffusionPolicy) -> bytes:
-    """The policy's U-Net as an ONNX graph (batch dimension free)."""
+    """The policy's U-Net with its FiLM given, as an ONNX graph (batch dimension free)."""
     config = policy.config
     sample = torch.zeros(1, config.horizon, config.action_dim)
-    cond = torch.zeros(1, config.global_cond_dim)
+    films = policy.unet.films(torch.tensor([0]), torch.zeros(1, config.global_cond_dim))[0]
     buffer = io.BytesIO()
     batch = {0: "batch"}
     with warnings.catch_warnings():  # the exporter's notes on its own deprecation
         warnings.simplefilter("ignore")
-        torch.onnx.export(policy.unet, (sample, torch.tensor([0]), cond), buffer,
-                          input_names=["sample", "timestep", "cond"], output_names=["noise"],
-                          dynamic_axes={"sample": batch, "cond": batch, "noise": batch},
+        torch.onnx.export(FilmedUnet(policy.unet), (sample, films), buffer,
+                          input_names=["sample", "films"], output_names=["noise"],
+                          dynamic_axes={"sample": batch, "films": batch, "noise": batch},
                           opset_version=OPSET, dynamo=False)
     return buffer.getvalue()
 
 
 def disagreement(policy: DiffusionPolicy, denoiser: OnnxDenoiser, seed: int = 0) -> float:
-    """Max abs difference between `denoiser` and torch over probe inputs: batches of 1 and 3,
-    the first and last timesteps and one between."""
+    """Max abs difference between the policy's network on `denoiser` (`DiffusionPolicy.
+    denoiser`: its FiLM computed for every step of a plan at once) and torch's own forward,
+    over probe inputs: batches of 1 and 3, the first and last timesteps and one between."""
     config, generator = policy.config, torch.Generator().manual_seed(seed)
+    steps = torch.tensor([config.num_train_timesteps - 1, config.num_train_timesteps // 2, 0])
     worst = 0.0
-    for batch in (1, 3):
-        for step in (0, config.num_train_timesteps // 2, config.num_train_timesteps - 1):
-            sample = torch.randn(batch, config.horizon, config.action_dim, generator=generator)
+    fast, policy.fast = policy.fast, denoiser
+    try:
+        for batch in (1, 3):
             cond = torch.rand(batch, config.global_cond_dim, generator=generator) * 2 - 1
-            timestep = torch.tensor(step)
             with torch.inference_mode():
-                expected = policy.unet(sample, timestep, cond)
-            worst = max(worst, float((denoiser(sample, timestep, cond) - expected).abs().max()))
+                network = policy.denoiser(steps, cond)
+                for index, step in enumerate(steps):
+                    sample = torch.randn(batch, config.horizon, config.action_dim,
+                                         generator=generator)
+                    expected = policy.unet(sample, step, cond)
+                    worst = max(worst, float((network(sample, index) - expected).abs().max()))
+    finally:
+        policy.fast = fast
     return worst
 
 

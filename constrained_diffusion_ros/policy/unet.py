@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
 
 import torch
 from torch import nn
@@ -46,7 +47,11 @@ class FiLMResidualBlock(nn.Module):
                      else nn.Identity())
 
     def forward(self, x: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
-        scale, bias = self.film(cond).unsqueeze(-1).chunk(2, dim=1)
+        return self.filmed(x, self.film(cond))
+
+    def filmed(self, x: torch.Tensor, film: torch.Tensor) -> torch.Tensor:
+        """The block with its FiLM output (B, 2 * channels_out) given."""
+        scale, bias = film.unsqueeze(-1).chunk(2, dim=1)
         out = self.second(scale * self.first(x) + bias)
         return out + self.skip(x)
 
@@ -87,18 +92,53 @@ class ConditionalUnet1D(nn.Module):
 
     def forward(self, sample: torch.Tensor, steps: torch.Tensor,
                 global_cond: torch.Tensor) -> torch.Tensor:
-        x = sample.transpose(1, 2)
         # Sampling gives one step for the whole batch: embed it once, not once per row.
-        embedded = self.step_encoder(steps.reshape(-1)).expand(x.shape[0], -1)
+        embedded = self.step_encoder(steps.reshape(-1)).expand(sample.shape[0], -1)
         cond = torch.cat([embedded, global_cond], dim=-1)
+        return self._walk(sample, lambda block, x: block(x, cond))
+
+    def films(self, steps: torch.Tensor, global_cond: torch.Tensor) -> torch.Tensor:
+        """(T,) steps and (B, global_cond_dim) conditions -> (T, B, F): every residual block's
+        FiLM scale and bias for each step, concatenated in `blocks` order. For one plan they
+        depend only on the step, so a runtime computes them once for all its steps (one matrix
+        product instead of a matrix-vector product per block per step) and runs
+        `forward_filmed` at each."""
+        embedded = self.step_encoder(steps.reshape(-1))
+        count, batch = embedded.shape[0], global_cond.shape[0]
+        cond = torch.cat([embedded[:, None].expand(count, batch, -1),
+                          global_cond[None].expand(count, batch, -1)], dim=-1)
+        return torch.cat([block.film(cond) for block in self.blocks()], dim=-1)
+
+    def forward_filmed(self, sample: torch.Tensor, film: torch.Tensor) -> torch.Tensor:
+        """The noise predicted for `sample` given one step's `films` (B, F)."""
+        offsets = {}
+        start = 0
+        for block in self.blocks():
+            width = block.film[-1].out_features
+            offsets[id(block)] = (start, start + width)
+            start += width
+        return self._walk(sample, lambda block, x: block.filmed(
+            x, film[:, offsets[id(block)][0]:offsets[id(block)][1]]))
+
+    def blocks(self) -> list[FiLMResidualBlock]:
+        """The residual blocks in the order the network runs them."""
+        down = [block for first, second, _ in self.down for block in (first, second)]
+        up = [block for first, second, _ in self.up for block in (first, second)]
+        return [*down, *self.mid, *up]
+
+    def _walk(self, sample: torch.Tensor, run: Callable[[FiLMResidualBlock, torch.Tensor],
+                                                         torch.Tensor]) -> torch.Tensor:
+        """The U-Net from the noisy sample (B, horizon, action_dim) to the noise, with `run`
+        applying each residual block."""
+        x = sample.transpose(1, 2)
         skips = []
         for first, second, downsample in self.down:
-            x = second(first(x, cond), cond)
+            x = run(second, run(first, x))
             skips.append(x)
             x = downsample(x)
         for mid in self.mid:
-            x = mid(x, cond)
+            x = run(mid, x)
         for first, second, upsample in self.up:
             x = torch.cat([x, skips.pop()], dim=1)
-            x = upsample(second(first(x, cond), cond))
+            x = upsample(run(second, run(first, x)))
         return self.head(x).transpose(1, 2)

@@ -102,11 +102,12 @@ class DenoisingSampler:
         shape = (cond.shape[0], config.horizon, config.action_dim)
         sample = torch.randn(shape, generator=generator).to(device)
         timesteps = self.scheduler.timesteps
+        network = self.policy.denoiser(timesteps.to(device), cond)
         for index, timestep in enumerate(timesteps):
             if self._interrupt is not None and self._interrupt():
                 raise Interrupted(f"stopped before denoising step {index + 1} of "
                                   f"{len(timesteps)}")
-            noise = self.policy.denoise(sample, timestep.to(device), cond)
+            noise = network(sample, index)
             sample = self.scheduler.step(noise, timestep, sample, generator=generator,
                                          **self.step_options).prev_sample
             if hooks:

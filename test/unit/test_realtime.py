@@ -37,6 +37,7 @@ from constrained_diffusion_ros.planning.os_scheduling import (
 from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult, plan_chunk
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.planning.planning_process import PlanningProcess, _send, serve
+from constrained_diffusion_ros.planning.simulated_worker import SimulatedPlanning
 from constrained_diffusion_ros.planning.thread_worker import PlanningThread
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.weights import save_policy
@@ -558,6 +559,29 @@ def test_sync_waits_for_the_plan_holding_the_last_setpoint() -> None:
     assert [v - 0.5 for v in x[2:10]] == [1, 2, 3, 4, 5, 6, 7, 8]  # the chunk from its start
     assert x[10] == x[9] + 0.5 and x[11] == x[10] + 0.5  # waiting again (the guard's 0.5)
     assert x[12] - 0.5 == 1001  # then chunk 1 from its start
+
+
+def test_every_tick_plans_from_each_observation_with_the_steps_before_it_arrives_committed(
+        ) -> None:
+    """every_tick: a plan asked at every step that has none on its way. At d = 0 each step
+    executes a chunk planned from its own observation; at d = 2 a plan every 2 steps, each
+    skipping the 2 that passed, and the prefix holds the waypoints executed and due before it
+    arrives (first_executed + d of them), not the chunk's whole rest."""
+    planner = Scripted()
+    actions, _ = run(lockstep(planner, delay=0, handover="every_tick"), 6)
+    assert [call[0] for call in planner.calls] == [0, 1, 2, 3, 4, 5]
+    assert [a[0, 0] - 0.5 for a in actions] == [1000 * c + 1 for c in range(6)]
+    planner, prefixes = Scripted(), []
+    plan = planner.plan
+    planner.plan = lambda observations, zones, rows, generator, prefix=None: (
+        prefixes.append(prefix), plan(observations, zones, rows, generator, prefix))[1]
+    actions, _ = run(lockstep(planner, delay=2, handover="every_tick"), 9)
+    assert [call[0] for call in planner.calls] == [0, 2, 4, 6, 8]
+    assert [a[0, 0] - 0.5 for a in actions[2:7]] == [3, 4, 1003, 1004, 2003]
+    held = prefixes[2].weights[0]  # asked at step 4, with chunk 1 (asked at 2) in force
+    assert held[:CONFIG.first_executed + 2].eq(1).all() and held[CONFIG.first_executed + 2] < 1
+    with pytest.raises(ValueError, match="every_tick"):
+        ChunkLoop(Scripted(), SimulatedPlanning.factory(), handover="sync", every_tick=True)
 
 
 def test_zero_delay_is_the_lockstep_executor_whatever_the_handover() -> None:

@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import gc
 import logging
+import os
 import re
 import sys
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 import rclpy
 from rclpy._rclpy_pybind11 import RCLError, RCLInvalidROSArgsError, UnknownROSArgsError
@@ -51,6 +53,17 @@ class RosLogHandler(logging.Handler):
                 self.logger.debug(text)
         except Exception:  # a log line never takes the node down
             self.handleError(record)
+
+
+def process_age_s() -> float | None:
+    """Seconds since this process started (Linux's /proc), or None where that cannot be read:
+    how long a node took to come up, imports included."""
+    try:
+        start_ticks = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19])
+        uptime = float(Path("/proc/uptime").read_text().split()[0])
+        return uptime - start_ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 def answered_help(args: list[str] | None, name: str, summary: str,

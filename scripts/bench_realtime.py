@@ -112,6 +112,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--executor-priority", type=int, default=None,
                         help="the policy node's executor_priority (0: normal scheduling; "
                              "default: the node's)")
+    parser.add_argument("--every-tick", action="store_true",
+                        help="the policy node with replan_every_tick:=true")
     return parser
 
 
@@ -607,6 +609,8 @@ def run_condition(args: argparse.Namespace, loaded: bool) -> None:
                                rate_hz=args.rate_hz, autostart=False)
                 extra = {} if args.executor_priority is None else {
                     "executor_priority": args.executor_priority}
+                if args.every_tick:
+                    extra["replan_every_tick"] = True
                 children.start("policy_node", model=args.model, configuration=configuration,
                                mode="realtime", rate_hz=args.rate_hz,
                                planning_process=args.planning_process == "true", **extra)
@@ -632,9 +636,8 @@ def run_condition(args: argparse.Namespace, loaded: bool) -> None:
                       f"{100 * steal / max(total, 1):.1f}%")
                 print("    node: " + ", ".join(f"{key} {client.status.get(key, '?')}" for key in (
                     "planning_ms", "plans", "plans_dropped", "plans_cancelled", "held_steps",
-                    "ticks_missed",
-                    "tick_late_p99_ms", "clock_realtime", "executor_realtime",
-                    "planning_priority")))
+                    "late_steps", "ticks_missed", "tick_late_p99_ms", "clock_realtime",
+                    "executor_realtime", "planning_priority")))
                 print("    standstills at a zone's edge (the node's count: 5+ steps under 0.5 px "
                       "with a zone within 5 px of the disc), with a waypoint to execute: "
                       + ", ".join(f"{key} {client.status.get(key, '?')}"

@@ -21,6 +21,13 @@ DEFAULT_ZARR = REPO.parent / "shared" / "datasets" / "pusht_cchi_v7_replay.zarr"
 LAYERS = ("unit", "ros", "install")
 
 
+@pytest.fixture(scope="session", autouse=True)
+def own_cache(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """What the package caches (exported ONNX graphs) goes to a folder of the session's, for
+    the tests and the nodes they start alike: no test reads what another run left."""
+    os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("cache"))
+
+
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Each test is marked with its layer, the folder it lives in."""
     for item in items:

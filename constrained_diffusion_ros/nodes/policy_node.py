@@ -51,7 +51,7 @@ from constrained_diffusion_ros.zones.live import LiveZones
 from msg_schemas import NAMESPACE, TOPICS, qos_profile
 from msg_schemas.conversions import path_message, step_of_stamp
 from msg_schemas.parameters import declare
-from msg_schemas.spin import RosLogHandler, log_matches, spin_node
+from msg_schemas.spin import RosLogHandler, log_matches, process_age_s, spin_node
 from msg_schemas.text import one_line
 
 STATUS_PERIOD_S = 0.5  # realtime: status this often
@@ -59,6 +59,7 @@ STATUS_PERIOD_S = 0.5  # realtime: status this often
 
 class PolicyNode(Node):
     def __init__(self) -> None:
+        started, imported = time.monotonic(), process_age_s()
         super().__init__("policy_node", namespace=NAMESPACE)
         # The package's Python log lines (the planning process's) go to /rosout too.
         package_log = logging.getLogger("constrained_diffusion_ros")
@@ -75,10 +76,12 @@ class PolicyNode(Node):
             workspace=tuple(values["robot.workspace"]),
             pusher_in_observation=PUSHT_ROBOT.pusher_in_observation)
         self.policy = load_policy(values["model"], values["device"])
+        loaded = time.monotonic()
         runtime = values["runtime"]
         if runtime == "auto":
             runtime = "onnxruntime" if self.realtime else "torch"
         self.runtime = use_runtime(self.policy, runtime)
+        checked = time.monotonic()
         self.configurations = load_configurations(values["configurations_file"])
         self.zones = LiveZones(values["max_zones"], values["max_vertices"],
                                plug_in_area(values["restricted_area"],
@@ -90,6 +93,7 @@ class PolicyNode(Node):
         self.generator = torch.Generator().manual_seed(values["noise_seed"])
         self.loop: ChunkLoop | None = None
         self._use_configuration(values["configuration"])
+        planning = time.monotonic()
         self.add_on_set_parameters_callback(self._on_parameters)
 
         self.sound = SoundSetpoints(self.robot, self.zones)
@@ -122,9 +126,13 @@ class PolicyNode(Node):
             # collector's sight, so a full collection does not hold the GIL to scan it all.
             gc.collect()
             gc.freeze()
+        phases = (f"imports {imported:.1f} s, " if imported is not None else "") + (
+            f"weights {loaded - started:.1f} s, {self.runtime} {checked - loaded:.1f} s, "
+            f"planner and its worker {planning - checked:.1f} s, the rest "
+            f"{time.monotonic() - planning:.1f} s")
         self.get_logger().info(
             f"{self.mode} policy from {values['model']}, configuration "
-            f"{self.config.name!r}, network on {self.runtime}")
+            f"{self.config.name!r}, network on {self.runtime}; start-up: {phases}")
 
     def destroy_node(self) -> None:
         self.zone_ingest.shutdown()

@@ -12,7 +12,7 @@ from msg_schemas import TOPICS, qos_profile
 
 # Their rise since the last report sets the diagnostic level.
 HEALTH_COUNTERS = ("violations", "unsound_setpoints", "zones_refused", "masks_refused",
-                   "observations_refused", "held_steps", "planning_errors")
+                   "observations_refused", "late_steps", "planning_errors")
 
 
 class StatusReporter:
@@ -58,8 +58,8 @@ class StatusReporter:
         if since["observations_refused"]:
             problems.append(f"{since['observations_refused']} observation(s) refused (not "
                             f"finite, or a pusher that cannot be the robot's)")
-        if since["held_steps"]:
-            problems.append(f"planning missed its deadline ({since['held_steps']} step(s) "
+        if since["late_steps"]:
+            problems.append(f"planning missed its deadline ({since['late_steps']} step(s) "
                             f"with no waypoint)")
         if problems:
             return DiagnosticStatus.WARN, "; ".join(problems)

@@ -90,6 +90,7 @@ class LoopStats:
     planning_s: float = 0.0  # wall time planning took, summed over the plans that arrived
     last_plan_ms: float = float("nan")
     held_steps: int = 0  # row-steps with no waypoint to execute (the last setpoint held)
+    late_steps: int = 0  # of those, after the episode's first plan: planning missed a deadline
     zone_reactions: int = 0  # setpoints changed at once because zones changed
 
 
@@ -181,6 +182,7 @@ class ChunkLoop:
         self._install(self._take_results())  # a plan ready at once (a simulated delay of 0)
         self.waiting = np.isnan(self.queue.at(step)).any(axis=-1)
         self.stats.held_steps += int(self.waiting.sum())
+        self.stats.late_steps += int((self.waiting & self.queue.planned).sum())
         return self._answer(self._update())
 
     def reset(self, noise_seed: int | None = None) -> None:
@@ -262,7 +264,8 @@ class ChunkLoop:
         stats, worker = self.stats, self.worker
         return {"plans": stats.plans_installed, "plans_dropped": stats.plans_dropped,
                 "plans_cancelled": worker.cancelled, "waypoints_skipped": self.queue.skipped,
-                "held_steps": stats.held_steps, "zone_reactions": stats.zone_reactions,
+                "held_steps": stats.held_steps, "late_steps": stats.late_steps,
+                "zone_reactions": stats.zone_reactions,
                 "lead": self.lead, "planning_priority": worker.priority,
                 "planning_errors": worker.errors, "planning_failed": worker.failed,
                 "planning_restarts": worker.restarts, "planning_error": worker.error}

@@ -199,15 +199,22 @@ class PlanningProcess:
         self.restarts = 0  # children started again after one died
         self.cancelled = 0  # plans stopped in flight
         self._watch_failed = False
+        # The child starts its interpreter while the node goes on starting: the weights and
+        # what follows go to it from the receiver thread, and a job asked for meanwhile waits.
         self._process, connection = self._spawn()
-        ready = self._handshake(connection)  # the first child ready before the first job
-        self._receiver = threading.Thread(target=self._supervise, args=(connection, ready),
+        self._receiver = threading.Thread(target=self._supervise, args=(connection, None),
                                           name=f"{name}_receiver", daemon=True)
         self._receiver.start()
 
     @property
     def pid(self) -> int:
         return self._process.pid
+
+    @property
+    def ready(self) -> bool:
+        """A child has what it needs to plan (jobs asked for before wait for it)."""
+        with self._lock:
+            return self._connection is not None
 
     @property
     def busy(self) -> bool:
@@ -317,12 +324,15 @@ class PlanningProcess:
             theirs.close()
         return process, Connection(ours.detach())
 
-    def _supervise(self, connection: Connection, ready: bool) -> None:
-        """Serve the child until it dies, then start another after a growing wait, until
-        `restart_limit` restarts in a row bring no plan (a plan that arrives resets the
-        count). Runs on the receiver thread: the callers of `submit` never wait for it."""
+    def _supervise(self, connection: Connection, ready: bool | None) -> None:
+        """Serve the child (given its weights first if `ready` is None) until it dies, then
+        start another after a growing wait, until `restart_limit` restarts in a row bring no
+        plan (a plan that arrives resets the count). Runs on the receiver thread: the callers
+        of `submit` never wait for it."""
         process: subprocess.Popen | None = self._process
         death = ""
+        if ready is None:
+            ready = self._handshake(connection)
         while True:
             if process is not None:
                 if ready:

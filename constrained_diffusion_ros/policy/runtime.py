@@ -10,16 +10,22 @@ checked against torch on probe inputs before it is used: a runtime that is missi
 the network, or disagrees with torch by more than TOLERANCE is not used, and one log line says
 why (never silently).
 
-The exported graph travels with the policy (a planning process gets it pickled with the
-weights); each process opens its own session on first use, with as many threads as torch has
-there.
+The graph is kept in a cache between starts (`cached_graph`), keyed by the weights and the
+exporter, and checked like a fresh one. It travels with the policy (a planning process gets it
+pickled with the weights); each process opens its own session on first use, with as many
+threads as torch has there.
 """
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import io
 import logging
+import math
+import os
 import warnings
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
@@ -32,6 +38,7 @@ Runtime = Literal["torch", "onnxruntime"]
 RUNTIMES: tuple[Runtime, ...] = ("torch", "onnxruntime")
 TOLERANCE = 1e-4  # max abs difference from torch on the probes, in the network's output
 OPSET = 17
+GRAPH_FORMAT = 2  # what is exported (2: the U-Net with its FiLM given); part of the cache key
 LOGGER = logging.getLogger(__name__)
 
 
@@ -120,6 +127,34 @@ def disagreement(policy: DiffusionPolicy, denoiser: OnnxDenoiser, seed: int = 0)
     return worst
 
 
+def cache_dir() -> Path:
+    """Where exported graphs are kept between starts ($XDG_CACHE_HOME or ~/.cache)."""
+    root = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(root) / "constrained_diffusion_ros" / "onnx"
+
+
+def cached_graph(policy: DiffusionPolicy, fresh: bool = False) -> bytes:
+    """The exported graph, from the cache when these weights were exported before by this
+    exporter (exporting costs most of a second at every start), unless `fresh`; a graph
+    exported is cached. The check that follows is what vouches for it either way. Without a
+    writable cache it is exported every time."""
+    key = hashlib.sha256(f"{GRAPH_FORMAT} {torch.__version__} {OPSET}".encode())
+    for name, tensor in sorted(policy.unet.state_dict().items()):
+        key.update(name.encode())
+        key.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    path = cache_dir() / f"{key.hexdigest()[:32]}.onnx"
+    if not fresh:
+        with contextlib.suppress(OSError):
+            return path.read_bytes()
+    graph = export_onnx(policy)
+    with contextlib.suppress(OSError):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        partial = path.with_suffix(f".{os.getpid()}.part")
+        partial.write_bytes(graph)
+        partial.replace(path)  # whole or not at all, whoever else writes it
+    return graph
+
+
 def use_runtime(policy: DiffusionPolicy, runtime: Runtime) -> Runtime:
     """Runs `policy`'s network on `runtime` from now on; returns the runtime in use, which is
     torch (with one warning in the log) where the one asked for cannot run it faithfully."""
@@ -133,8 +168,14 @@ def use_runtime(policy: DiffusionPolicy, runtime: Runtime) -> Runtime:
                        "(%s)", policy.device)
         return "torch"
     try:
-        denoiser = OnnxDenoiser(export_onnx(policy))
-        worst = disagreement(policy, denoiser)
+        try:
+            denoiser = OnnxDenoiser(cached_graph(policy))
+            worst = disagreement(policy, denoiser)
+        except Exception:  # a cached graph gone bad, or one that cannot run: see below
+            worst = math.inf
+        if not worst <= TOLERANCE:  # exported afresh: a fault then is the runtime's
+            denoiser = OnnxDenoiser(cached_graph(policy, fresh=True))
+            worst = disagreement(policy, denoiser)
     except Exception as error:  # a missing package, an operator it cannot export or run
         LOGGER.warning("runtime onnxruntime cannot run this network (%s: %s); using torch",
                        type(error).__name__, str(error).splitlines()[0] if str(error) else "")

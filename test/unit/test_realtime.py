@@ -223,6 +223,9 @@ def test_the_planning_process_stops_the_plan_in_flight_and_plans_the_pending_one
     worker = PlanningProcess(ConstrainedPlanner(tiny_policy, slow, PUSHT_ROBOT),
                              lambda result: (results.append(result), done.release()))
     try:
+        deadline = time.monotonic() + 60
+        while not worker.ready and time.monotonic() < deadline:  # the child starts meanwhile
+            time.sleep(0.01)
         worker.submit(PlanJob(1, 0, torch.full((1, 2, 20), 200.0), None, 0, None))
         worker.submit(PlanJob(2, 0, torch.full((1, 2, 20), 200.0), None, 0, None), cancel=True)
         assert done.acquire(timeout=60)

@@ -72,10 +72,28 @@ def test_the_graph_travels_with_the_policy_and_opens_again(shipped: DiffusionPol
         runtime.use_runtime(shipped, "torch")
 
 
+def test_the_graph_is_cached_between_starts_and_a_bad_cache_is_exported_afresh(
+        shipped: DiffusionPolicy, monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    exports, export = [], runtime.export_onnx
+    monkeypatch.setattr(runtime, "export_onnx", lambda p: (exports.append(1), export(p))[1])
+    try:
+        assert runtime.use_runtime(shipped, "onnxruntime") == "onnxruntime"
+        (cached,) = runtime.cache_dir().glob("*.onnx")
+        assert runtime.use_runtime(shipped, "onnxruntime") == "onnxruntime"
+        assert len(exports) == 1  # the second start read the cache
+        cached.write_bytes(b"not a graph")
+        assert runtime.use_runtime(shipped, "onnxruntime") == "onnxruntime"
+        assert len(exports) == 2 and cached.read_bytes() != b"not a graph"  # and cached again
+    finally:
+        runtime.use_runtime(shipped, "torch")
+
+
 @pytest.mark.parametrize("fault", ["cannot export", "disagrees"])
 def test_a_runtime_that_cannot_run_the_network_falls_back_to_torch_saying_so(
         shipped: DiffusionPolicy, fault: str, monkeypatch: pytest.MonkeyPatch,
-        caplog: pytest.LogCaptureFixture) -> None:
+        caplog: pytest.LogCaptureFixture, tmp_path) -> None:
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))  # nothing cached: it must export
     if fault == "cannot export":
         def broken(_policy):
             raise RuntimeError("Unsupported: ONNX export of operator mish\nmore detail")

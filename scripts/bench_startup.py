@@ -1,0 +1,79 @@
+"""How long the policy node takes to come up in real-time mode: from starting its process to the
+first setpoint a client receives, with the node's own account of where the time went (its
+start-up log line: imports, weights, the runtime's export and check, the planner and its
+planning process). The simulator runs already, so the first setpoint comes as soon as the policy
+can answer. Idle, then beside busy processes that the script starts and stops itself. Prints
+figures; asserts nothing.
+
+Run: OMP_NUM_THREADS=1 python scripts/bench_startup.py [--runs 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from bench_realtime import Client, add_condition_arguments, background_load
+
+from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_domain_id
+from constrained_diffusion_ros.paths import default_model_dir
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--model", default=str(default_model_dir()), help="policy directory")
+    parser.add_argument("--configuration", default="ddim10_r_g10_p_safe")
+    parser.add_argument("--runs", type=int, default=3, help="start-ups per condition")
+    parser.add_argument("--timeout", type=float, default=120.0, help="s to wait for a setpoint")
+    add_condition_arguments(parser)
+    return parser
+
+
+def one_start(args: argparse.Namespace, log_dir: Path) -> tuple[float, str]:
+    """Seconds from starting the policy node to the first setpoint; its start-up log line."""
+    domain_id = random_domain_id()
+    children = NodeProcesses(log_dir, domain_id)
+    client = Client(domain_id, children)
+    try:
+        children.start("sim_node", mode="realtime", autostart=True)
+        client.spin_until(lambda: len(client.pushers) > 0, args.timeout, "the simulator")
+        started = time.monotonic()
+        _, log = children.start("policy_node", model=args.model, mode="realtime",
+                                configuration=args.configuration)
+        client.spin_until(lambda: len(client.setpoints) > 0, args.timeout, "a setpoint")
+        first = client.setpoints[0].received - started
+        line = next((m.group(1) for m in re.finditer(r"start-up: (.*)", log.read_text())), "?")
+        return first, line
+    finally:
+        client.close()
+        children.stop_all()
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    base = Path(tempfile.mkdtemp(prefix="bench_startup_"))
+    print(f"policy node start-up, realtime, {args.configuration}; logs in {base}")
+    for condition in args.conditions:
+        loaded = condition == "loaded"
+        print(f"\n== {condition} ==", flush=True)
+        with background_load(args.load if loaded else 0):
+            seconds = []
+            for run in range(args.runs):
+                log_dir = base / f"{condition}_{run}"
+                log_dir.mkdir(parents=True)
+                first, line = one_start(args, log_dir)
+                seconds.append(first)
+                print(f"  run {run + 1}: first setpoint {first:.1f} s after the process "
+                      f"started; the node: {line}", flush=True)
+        print(f"  median {statistics.median(seconds):.1f} s, max {max(seconds):.1f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -62,7 +62,7 @@ TOPICS: dict[str, Endpoint] = {e.key: e for e in (
              ("sim_node", "recorder"), "px, frame workspace; stamp = the observation's",
              "Commanded pusher target, one per control step"),
     Endpoint("plan", "nav_msgs/msg/Path", "sensor", "policy_node", ("recorder",),
-             "px, frame workspace", "The planned action chunk (16 waypoints)"),
+             "px, frame workspace", "The chunk in force, from its first executed waypoint (15)"),
     Endpoint("zones", "geometry_msgs/msg/PolygonInstanceStamped", "latched",
              "zone_publisher", ("policy_node", "recorder"), "px, frame workspace",
              "Restricted zones keyed by id: add or replace; an empty polygon removes the id"),

@@ -141,6 +141,8 @@ class ChunkLoop:
         self.worker = make_worker(planner, self._on_result)
         self.history: ObservationHistory | None = None
         self.step: int | None = None  # the newest observation's control step
+        self.queue = ActionQueue(0, self.n_action_steps)  # an episode's rows from its start
+        self.skipped_before = 0  # waypoints skipped in the episodes before
 
     @classmethod
     def simulated(cls, planner: ChunkPlanner, zones: ZoneSource | None = None,
@@ -263,7 +265,8 @@ class ChunkLoop:
         worker's last fault, or None)."""
         stats, worker = self.stats, self.worker
         return {"plans": stats.plans_installed, "plans_dropped": stats.plans_dropped,
-                "plans_cancelled": worker.cancelled, "waypoints_skipped": self.queue.skipped,
+                "plans_cancelled": worker.cancelled,
+                "waypoints_skipped": self.skipped_before + self.queue.skipped,
                 "held_steps": stats.held_steps, "late_steps": stats.late_steps,
                 "zone_reactions": stats.zone_reactions,
                 "lead": self.lead, "planning_priority": worker.priority,
@@ -278,6 +281,7 @@ class ChunkLoop:
     def _start(self, observations: np.ndarray) -> None:
         batch = len(observations)
         self.history = ObservationHistory(observations, self.n_obs_steps)
+        self.skipped_before += self.queue.skipped
         self.queue = ActionQueue(batch, self.n_action_steps)
         self.planned_version = np.zeros(batch, dtype=np.int64)  # zones each chunk was planned for
         self.replanning = np.full(batch, None, dtype=object)  # the replan job on its way, if any

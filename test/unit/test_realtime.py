@@ -646,6 +646,21 @@ def held_planner(policy: DiffusionPolicy) -> tuple[ConstrainedPlanner, threading
     return planner, started, release
 
 
+def test_the_status_reads_before_the_first_observation_and_across_episodes(
+        tiny_policy: DiffusionPolicy) -> None:
+    """The node reports on a timer, which may come before any observation."""
+    controller = live(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT), LiveZones(), lead=1)
+    try:
+        status = controller.status()
+        assert (status["plans"], status["held_steps"], status["waypoints_skipped"]) == (0, 0, 0)
+        controller.observe(3, observation_with_pusher(100, 100))
+        installed(controller)
+        controller.observe(0, observation_with_pusher(100, 100))  # a new episode
+        assert controller.status()["plans"] >= 1
+    finally:
+        controller.shutdown()
+
+
 def test_the_controller_installs_a_late_plan_without_the_steps_that_passed(
         tiny_policy: DiffusionPolicy) -> None:
     planner, started, release = held_planner(tiny_policy)

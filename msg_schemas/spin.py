@@ -66,6 +66,24 @@ def process_age_s() -> float | None:
         return None
 
 
+class StartupPhases:
+    """Where a node's start-up went, for its ready line: the interpreter's imports (from the
+    process's start to building the node), then each phase `mark`ed after it ends."""
+
+    def __init__(self) -> None:
+        self.imports, self.last = process_age_s(), time.monotonic()
+        self.phases: list[tuple[str, float]] = []
+
+    def mark(self, name: str) -> None:
+        now = time.monotonic()
+        self.phases.append((name, now - self.last))
+        self.last = now
+
+    def text(self) -> str:
+        parts = [] if self.imports is None else [("imports", self.imports)]
+        return ", ".join(f"{name} {seconds:.1f} s" for name, seconds in parts + self.phases)
+
+
 def answered_help(args: list[str] | None, name: str, summary: str,
                   parameters: Sequence[Param]) -> bool:
     """Prints the node's usage if `-h` or `--help` comes before `--ros-args`."""

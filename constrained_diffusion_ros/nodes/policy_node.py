@@ -39,10 +39,8 @@ from constrained_diffusion_ros.planning.config import load_configurations
 from constrained_diffusion_ros.planning.liveness import StandstillCounts
 from constrained_diffusion_ros.planning.os_scheduling import request_fifo
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
-from constrained_diffusion_ros.planning.planning_process import PlanningProcess
 from constrained_diffusion_ros.planning.robot import RobotModel
 from constrained_diffusion_ros.planning.sound_setpoints import SoundSetpoints
-from constrained_diffusion_ros.planning.thread_worker import PlanningThread
 from constrained_diffusion_ros.policy.runtime import use_runtime
 from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
@@ -51,7 +49,7 @@ from constrained_diffusion_ros.zones.live import LiveZones
 from msg_schemas import NAMESPACE, TOPICS, qos_profile
 from msg_schemas.conversions import path_message, step_of_stamp
 from msg_schemas.parameters import declare
-from msg_schemas.spin import RosLogHandler, log_matches, process_age_s, spin_node
+from msg_schemas.spin import RosLogHandler, StartupPhases, log_matches, spin_node
 from msg_schemas.text import one_line
 
 STATUS_PERIOD_S = 0.5  # realtime: status this often
@@ -59,7 +57,7 @@ STATUS_PERIOD_S = 0.5  # realtime: status this often
 
 class PolicyNode(Node):
     def __init__(self) -> None:
-        started, imported = time.monotonic(), process_age_s()
+        startup = StartupPhases()
         super().__init__("policy_node", namespace=NAMESPACE)
         # The package's Python log lines (the planning process's) go to /rosout too.
         package_log = logging.getLogger("constrained_diffusion_ros")
@@ -76,12 +74,12 @@ class PolicyNode(Node):
             workspace=tuple(values["robot.workspace"]),
             pusher_in_observation=PUSHT_ROBOT.pusher_in_observation)
         self.policy = load_policy(values["model"], values["device"])
-        loaded = time.monotonic()
+        startup.mark("weights")
         runtime = values["runtime"]
         if runtime == "auto":
             runtime = "onnxruntime" if self.realtime else "torch"
         self.runtime = use_runtime(self.policy, runtime)
-        checked = time.monotonic()
+        startup.mark(self.runtime)
         self.configurations = load_configurations(values["configurations_file"])
         self.zones = LiveZones(values["max_zones"], values["max_vertices"],
                                plug_in_area(values["restricted_area"],
@@ -93,7 +91,7 @@ class PolicyNode(Node):
         self.generator = torch.Generator().manual_seed(values["noise_seed"])
         self.loop: ChunkLoop | None = None
         self._use_configuration(values["configuration"])
-        planning = time.monotonic()
+        startup.mark("planner and its worker")
         self.add_on_set_parameters_callback(self._on_parameters)
 
         self.sound = SoundSetpoints(self.robot, self.zones)
@@ -126,13 +124,10 @@ class PolicyNode(Node):
             # collector's sight, so a full collection does not hold the GIL to scan it all.
             gc.collect()
             gc.freeze()
-        phases = (f"imports {imported:.1f} s, " if imported is not None else "") + (
-            f"weights {loaded - started:.1f} s, {self.runtime} {checked - loaded:.1f} s, "
-            f"planner and its worker {planning - checked:.1f} s, the rest "
-            f"{time.monotonic() - planning:.1f} s")
+        startup.mark("the rest")
         self.get_logger().info(
             f"{self.mode} policy from {values['model']}, configuration "
-            f"{self.config.name!r}, network on {self.runtime}; start-up: {phases}")
+            f"{self.config.name!r}, network on {self.runtime}; start-up: {startup.text()}")
 
     def destroy_node(self) -> None:
         self.zone_ingest.shutdown()
@@ -156,17 +151,14 @@ class PolicyNode(Node):
         if self.loop is not None:
             self.loop.use_planner(self.planner)
             return
-        threads, idle = self.values["torch_threads"], self.values["planning_idle"]
-        in_process = self.values["planning_process"]
-        lead = self.values["lead"]
-        self.loop = ChunkLoop(
-            self.planner, (lambda planner, on_result: PlanningProcess(
-                planner, on_result, seed, threads, idle=idle)) if in_process else
-            (lambda planner, on_result: PlanningThread(planner, on_result, seed)),
-            self.zones, lead=None if lead < 0 else lead, soft=self.values["prefix_soft"],
-            rate_hz=self.rate_hz, noise_seed=seed,
+        values, lead = self.values, self.values["lead"]
+        self.loop = ChunkLoop.live(
+            self.planner, self.zones,
+            values["torch_threads"] if values["planning_process"] else None,
+            values["planning_idle"], seed, lead=None if lead < 0 else lead,
+            soft=values["prefix_soft"], rate_hz=self.rate_hz,
             wake=self.create_guard_condition(self._on_plan_ready).trigger,
-            every_tick=self.values["replan_every_tick"])
+            every_tick=values["replan_every_tick"])
 
     def _on_parameters(self, parameters) -> SetParametersResult:
         for parameter in parameters:

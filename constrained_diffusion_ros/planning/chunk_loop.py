@@ -37,7 +37,9 @@ from constrained_diffusion_ros.planning.action_queue import (
 )
 from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult, PlanWorker
 from constrained_diffusion_ros.planning.planners import ChunkPlanner, ConstrainedPlanner
+from constrained_diffusion_ros.planning.planning_process import PlanningProcess
 from constrained_diffusion_ros.planning.simulated_worker import SimulatedPlanning
+from constrained_diffusion_ros.planning.thread_worker import PlanningThread
 from constrained_diffusion_ros.zones.area import RestrictedArea
 from constrained_diffusion_ros.zones.geometry import leaves_no_room
 from constrained_diffusion_ros.zones.live import LiveZones
@@ -157,6 +159,21 @@ class ChunkLoop:
             handover, every_tick = "async_prefix", True
         return cls(planner, SimulatedPlanning.factory(generator, delay), zones, handover,
                    lead=delay, noise_seed=noise_seed, every_tick=every_tick, delay=delay)
+
+    @classmethod
+    def live(cls, planner: ConstrainedPlanner, zones: ZoneSource,
+             process_threads: int | None = 1, idle: bool = True, noise_seed: int = 0,
+             **options: object) -> ChunkLoop:
+        """The loop on the wall clock, as the policy node runs it live: plans made in a child
+        process with `process_threads` torch threads, at idle priority if `idle`
+        (`PlanningProcess`), or with None in a thread of this process (`PlanningThread`);
+        `options` are the loop's (lead, soft, rate_hz, wake, every_tick)."""
+        def make_worker(planner: ChunkPlanner, on_result: Callable[[PlanResult], None]
+                        ) -> PlanWorker:
+            if process_threads is None:
+                return PlanningThread(planner, on_result, noise_seed)
+            return PlanningProcess(planner, on_result, noise_seed, process_threads, idle=idle)
+        return cls(planner, make_worker, zones, noise_seed=noise_seed, **options)
 
     # -- inputs ------------------------------------------------------------------------------
 

@@ -614,10 +614,7 @@ def live(planner: ConstrainedPlanner, zones: LiveZones, lead: int | None = None,
          process_threads: int | None = None) -> ChunkLoop:
     """The loop as the node runs it live: plans from a thread (or a process), warmed up."""
     warm_up(planner)
-    return ChunkLoop(planner, (lambda p, on_result: PlanningThread(p, on_result))
-                     if process_threads is None else
-                     (lambda p, on_result: PlanningProcess(p, on_result, 0, process_threads)),
-                     zones, lead=lead, noise_seed=0)
+    return ChunkLoop.live(planner, zones, process_threads, lead=lead)
 
 
 def installed(controller: ChunkLoop) -> None:

@@ -22,6 +22,7 @@ from constrained_diffusion_ros.policy.schedulers import (
     TimestepSpacing,
     make_scheduler,
 )
+from constrained_diffusion_ros.sampling.updates import ScheduledUpdates
 
 
 @dataclass(frozen=True)
@@ -73,12 +74,12 @@ class DenoisingSampler:
         self.policy = policy
         self.kind = kind
         self.scheduler = make_scheduler(policy.config, kind, timestep_spacing)
-        self.step_options = {"eta": eta} if kind == "ddim" else {}
         self.num_inference_steps = num_inference_steps or policy.config.num_train_timesteps
         if not 1 <= self.num_inference_steps <= policy.config.num_train_timesteps:
             raise ValueError(f"num_inference_steps must be in [1, "
                              f"{policy.config.num_train_timesteps}], got {num_inference_steps}")
         self.scheduler.set_timesteps(self.num_inference_steps)
+        self.updates = ScheduledUpdates(self.scheduler, eta)  # its `step`, without the overhead
         self._interrupt: Callable[[], bool] | None = None
 
     @contextlib.contextmanager
@@ -108,8 +109,7 @@ class DenoisingSampler:
                 raise Interrupted(f"stopped before denoising step {index + 1} of "
                                   f"{len(timesteps)}")
             noise = network(sample, index)
-            sample = self.scheduler.step(noise, timestep, sample, generator=generator,
-                                         **self.step_options).prev_sample
+            sample = self.updates.apply(index, noise, sample, generator)
             if hooks:
                 last = index == len(timesteps) - 1
                 step = DenoisingStep(index, len(timesteps), int(timestep), generator, normalizer,

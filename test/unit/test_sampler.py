@@ -18,6 +18,7 @@ from constrained_diffusion_ros.sampling.sampler import (
     DenoisingStep,
     Interrupted,
 )
+from constrained_diffusion_ros.sampling.updates import ScheduledUpdates
 
 # -- Through the sampler -------------------------------------------------------------------------
 
@@ -181,3 +182,27 @@ def test_timestep_spacing_and_eta_shape_the_ddim_schedule(tiny_policy: Diffusion
     again = DenoisingSampler(tiny_policy, "ddim", 4, "trailing", 0.0).sample(
         obs, torch.Generator().manual_seed(0))
     assert torch.equal(deterministic, again) and not torch.equal(deterministic, stochastic)
+
+
+@pytest.mark.parametrize(("kind", "steps", "eta"),
+                         [("ddpm", 100, 0.0), ("ddpm", 10, 0.0), ("ddim", 10, 0.0),
+                          ("ddim", 10, 1.0)])
+def test_the_precomputed_updates_are_the_schedulers_own_bit_for_bit(
+        tiny_policy: DiffusionPolicy, kind: str, steps: int, eta: float) -> None:
+    """A whole schedule of updates, noise drawn from the same generator: equal to diffusers'
+    `step` to the last bit, so the sampler's results (and the committed reports) stay theirs."""
+    sampler = DenoisingSampler(tiny_policy, kind, steps, eta=eta)
+    updates = ScheduledUpdates(sampler.scheduler, eta)
+    theirs = torch.Generator().manual_seed(3)
+    ours = torch.Generator().manual_seed(3)
+    reference = torch.randn(4, 16, 2, generator=torch.Generator().manual_seed(1))
+    fast = reference.clone()
+    outputs = torch.Generator().manual_seed(2)
+    for index, timestep in enumerate(sampler.scheduler.timesteps):
+        output = torch.randn(4, 16, 2, generator=outputs)
+        reference = sampler.scheduler.step(output, timestep, reference, generator=theirs,
+                                           eta=eta).prev_sample if kind == "ddim" else \
+            sampler.scheduler.step(output, timestep, reference, generator=theirs).prev_sample
+        fast = updates.apply(index, output, fast, ours)
+        assert torch.equal(fast, reference), index
+    assert not torch.equal(fast, torch.zeros_like(fast))

@@ -598,7 +598,7 @@ def test_zero_delay_is_the_lockstep_executor_whatever_the_handover() -> None:
         lockstep(Scripted(), handover="later")
 
 
-# -- The live controller (what the policy node runs in real time), with a tiny policy -----------
+# -- The live loop (what the policy node runs in real time), with a tiny policy -----------------
 
 SAFE = ConstraintConfig("safe", sampler="ddim", denoising_steps=3, resample=True, push=10,
                         project=True, inflate=True, path_repair=True, shield=True)

@@ -136,6 +136,7 @@ class ChunkLoop:
         self.n_action_steps = config.n_action_steps
         self.stats = LoopStats()
         self.plan_seconds = 0.0  # running estimate of one planning call
+        self.serial = 0  # the last job's number
         self.generation = 0  # episodes and configurations: a plan from another is dropped
         self._results: list[PlanResult] = []  # arrived (or simulated: on their way)
         self._results_lock = threading.Lock()
@@ -221,7 +222,7 @@ class ChunkLoop:
         self.worker.use(planner)
         self.generation += 1
         if self.step is not None:
-            self.replanning[:] = None
+            self.replanning[:] = 0
             self._ask(np.arange(len(self.queue.end)), replan=True)
 
     @torch.inference_mode()
@@ -301,7 +302,7 @@ class ChunkLoop:
         self.skipped_before += self.queue.skipped
         self.queue = ActionQueue(batch, self.n_action_steps)
         self.planned_version = np.zeros(batch, dtype=np.int64)  # zones each chunk was planned for
-        self.replanning = np.full(batch, None, dtype=object)  # the replan job on its way, if any
+        self.replanning = np.zeros(batch, dtype=np.int64)  # the replan on its way (serial; 0: none)
         self.setpoints = self.planner.robot.pusher(self.history.latest).astype(float)
         self.wanted = self.setpoints.copy()
         self.executed_id = np.full(batch, -1)  # the chunk (install count) executed; -1: held
@@ -321,10 +322,10 @@ class ChunkLoop:
         version = np.broadcast_to(self.zones.version_at(self.step), (rows,))
         return self.zones.area_at(self.step), version
 
-    def _refused(self, waypoints: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    def _refused(self, waypoints: np.ndarray, rows: np.ndarray,
+                 area: RestrictedArea | None) -> np.ndarray:
         """(R, N) which waypoints (R, N, 2) of `rows` lie where the planner keeps waypoints out
-        of under the zones in force."""
-        area, _ = self._zones_now()
+        of under `area` (the zones in force)."""
         zones = None if area is None else area.select_rows(rows)
         return self.planner.violates(torch.from_numpy(waypoints), zones, rows).numpy()
 
@@ -333,19 +334,19 @@ class ChunkLoop:
         on the rest of their chunk (or that refused their held setpoint) and no replan on its
         way."""
         planning = self._planning()
-        self.replanning[~planning] = None  # nothing on its way: a replan that failed is not coming
+        self.replanning[~planning] = 0  # nothing on its way: a replan that failed is not coming
         remaining = self.queue.remaining(self.step)
-        _, version = self._zones_now()
+        area, version = self._zones_now()
         entered = np.zeros(len(remaining), dtype=bool)
         moved = np.nonzero(self.held_moved)[0]
         if len(moved):  # zones came onto the setpoints held before them
-            entered[moved] = self._refused(self.held_before[moved][:, None], moved)[:, 0]
+            entered[moved] = self._refused(self.held_before[moved][:, None], moved, area)[:, 0]
             self.held_moved[:] = False
         check = np.nonzero(~entered & (version != self.planned_version) & (remaining > 0))[0]
         if len(check):
             entered[check] = self.queue.rest_refused(
-                check, self.step, lambda waypoints: self._refused(waypoints, check))
-        entered &= np.array([job is None for job in self.replanning])
+                check, self.step, lambda waypoints: self._refused(waypoints, check, area))
+        entered &= self.replanning == 0
         ask = ((remaining <= self.lead) & ~planning) | entered
         if ask.any():
             self._ask(np.nonzero(ask)[0], replan=entered[ask])
@@ -364,13 +365,14 @@ class ChunkLoop:
                 and self.soft >= 0:
             prefix = committed_prefix(self.queue, rows, self.step, committed, self.soft,
                                       self.first_executed, free=replan)
+        self.serial += 1
         job = PlanJob(self.generation, self.step, self.history.tensor(rows),
                       None if area is None else area.select_rows(rows), version[rows].copy(),
-                      prefix, rows)
+                      prefix, rows, self.serial)
         self.stats.plans_asked += 1
         if self.handover == "sync":  # the robot waits for the plan, which starts when ready
             self.queue.clear(rows)
-        self.replanning[rows[replan]] = job
+        self.replanning[rows[replan]] = job.serial
         self.worker.submit(job, cancel=bool(replan.any()))
 
     def _planning(self) -> np.ndarray:
@@ -412,16 +414,16 @@ class ChunkLoop:
                 self.stats.plans_dropped += len(job.rows)
                 continue
             rows = job.rows
-            mine = np.array([self.replanning[row] is job for row in rows], dtype=bool)
-            self.replanning[rows[mine]] = None
-            _, version = self._zones_now()
+            mine = self.replanning[rows] == job.serial
+            self.replanning[rows[mine]] = 0
+            area, version = self._zones_now()
             stale = job.zone_version != version[rows]
             if stale.any():  # planned before zones that it enters: dropped, asked for again
-                stale[stale] = self._refused(chunks[stale], rows[stale]).any(axis=1)
+                stale[stale] = self._refused(chunks[stale], rows[stale], area).any(axis=1)
             if stale.any():
                 self.stats.plans_dropped += int(stale.sum())
                 again = rows[stale]
-                free = np.array([self.replanning[row] is None for row in again], dtype=bool)
+                free = self.replanning[again] == 0
                 if free.any():
                     self._ask(again[free], replan=True)
             keep = ~stale
@@ -442,7 +444,7 @@ class ChunkLoop:
         older = np.nonzero(version != self.planned_version)[0]
         if area is not None and len(older):  # waypoints planned before these zones
             points = waypoints[older]
-            refused = self._refused(points[:, None], older)[:, 0]
+            refused = self._refused(points[:, None], older, area)[:, 0]
             if refused.any():
                 waypoints = waypoints.copy()
                 moved = older[refused]

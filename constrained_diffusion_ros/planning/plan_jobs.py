@@ -37,6 +37,7 @@ class PlanJob:
     prefix: CommittedPrefix | None
     rows: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))  # (R,) the
     # loop's rows (episodes) it plans for; one episode by default
+    serial: int = 0  # the asking loop's number for it (1, 2, ...); 0: none given
 
     def __post_init__(self) -> None:
         self.zone_version = np.broadcast_to(np.asarray(self.zone_version), self.rows.shape)

@@ -23,7 +23,8 @@ class SimulatedPlanning:
 
     priority = "the caller's thread"
     error: BaseException | None = None
-    errors = failed = restarts = cancelled = 0
+    errors = restarts = cancelled = 0
+    failed = False
     busy = False
 
     def __init__(self, planner: ChunkPlanner, on_result: Callable[[PlanResult], None],

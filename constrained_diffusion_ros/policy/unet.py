@@ -110,15 +110,10 @@ class ConditionalUnet1D(nn.Module):
         return torch.cat([block.film(cond) for block in self.blocks()], dim=-1)
 
     def forward_filmed(self, sample: torch.Tensor, film: torch.Tensor) -> torch.Tensor:
-        """The noise predicted for `sample` given one step's `films` (B, F)."""
-        offsets = {}
-        start = 0
-        for block in self.blocks():
-            width = block.film[-1].out_features
-            offsets[id(block)] = (start, start + width)
-            start += width
-        return self._walk(sample, lambda block, x: block.filmed(
-            x, film[:, offsets[id(block)][0]:offsets[id(block)][1]]))
+        """The noise predicted for `sample` given one step's `films` (B, F): each block takes
+        its part in turn (`_walk` runs them in `blocks` order)."""
+        parts = iter(film.split([block.film[-1].out_features for block in self.blocks()], dim=1))
+        return self._walk(sample, lambda block, x: block.filmed(x, next(parts)))
 
     def blocks(self) -> list[FiLMResidualBlock]:
         """The residual blocks in the order the network runs them."""

@@ -69,6 +69,9 @@ class ObservationInput:
         if stamp in self.keypoints and stamp in self.pushers:
             self.on_pair(stamp, stamp_msg)
 
+    def status(self) -> dict[str, object]:
+        return {"observations_refused": self.refused}
+
     def take(self, stamp: float) -> np.ndarray | None:
         """The observation of `stamp` from its two halves (older halves dropped), or None
         when it is refused (warned, counted)."""

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import gc
 import logging
-import math
 import sys
 import time
 
@@ -24,13 +23,8 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 
 from constrained_diffusion_ros.nodes.observation_input import ObservationInput
-from constrained_diffusion_ros.nodes.policy_parameters import (
-    PARAMETERS,
-    ROBOT_FIELDS,
-    check_picklable,
-    plug_in_area,
-)
-from constrained_diffusion_ros.nodes.policy_status import StatusReporter
+from constrained_diffusion_ros.nodes.policy_parameters import PARAMETERS, live_zones, robot_model
+from constrained_diffusion_ros.nodes.policy_status import ReactionTimes, StatusReporter
 from constrained_diffusion_ros.nodes.setpoint_output import SetpointOutput
 from constrained_diffusion_ros.nodes.zone_ingest import ZoneIngest
 from constrained_diffusion_ros.planning.chunk_loop import ChunkLoop, warm_up
@@ -39,13 +33,10 @@ from constrained_diffusion_ros.planning.config import load_configurations
 from constrained_diffusion_ros.planning.liveness import StandstillCounts
 from constrained_diffusion_ros.planning.os_scheduling import request_fifo
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
-from constrained_diffusion_ros.planning.robot import RobotModel
 from constrained_diffusion_ros.planning.sound_setpoints import SoundSetpoints
 from constrained_diffusion_ros.policy.runtime import use_runtime
 from constrained_diffusion_ros.policy.weights import load_policy
-from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones.grid import MaskCaps
-from constrained_diffusion_ros.zones.live import LiveZones
 from msg_schemas import NAMESPACE, TOPICS, qos_profile
 from msg_schemas.conversions import path_message, step_of_stamp
 from msg_schemas.parameters import declare
@@ -69,10 +60,7 @@ class PolicyNode(Node):
         torch.set_num_threads(values["torch_threads"])
         if self.realtime:  # the clock thread waits at most 0.2 ms for another's GIL
             sys.setswitchinterval(0.0002)
-        self.robot = RobotModel(
-            **{name: values[f"robot.{name}"] for name in ROBOT_FIELDS},
-            workspace=tuple(values["robot.workspace"]),
-            pusher_in_observation=PUSHT_ROBOT.pusher_in_observation)
+        self.robot = robot_model(values)
         self.policy = load_policy(values["model"], values["device"])
         startup.mark("weights")
         runtime = values["runtime"]
@@ -81,13 +69,7 @@ class PolicyNode(Node):
         self.runtime = use_runtime(self.policy, runtime)
         startup.mark(self.runtime)
         self.configurations = load_configurations(values["configurations_file"])
-        self.zones = LiveZones(values["max_zones"], values["max_vertices"],
-                               plug_in_area(values["restricted_area"],
-                                            values["restricted_area_parameters"],
-                                            self.robot.workspace),
-                               workspace=self.robot.workspace)
-        if self.realtime and values["planning_process"]:
-            check_picklable(self.zones.fixed, values["restricted_area"])
+        self.zones = live_zones(values, self.robot.workspace)
         self.generator = torch.Generator().manual_seed(values["noise_seed"])
         self.loop: ChunkLoop | None = None
         self._use_configuration(values["configuration"])
@@ -109,9 +91,7 @@ class PolicyNode(Node):
         self.last_stamp = -1.0  # lockstep: the observation answered last
         self.latest_stamp = None  # realtime: the newest observation's stamp
         self.standstills = StandstillCounts()  # the pusher parked at a zone's edge
-        self.zone_change_time: float | None = None
-        self.replan_latency_ms = float("nan")
-        self.zone_to_setpoint_ms = float("nan")  # the last safe setpoint sent for a zone
+        self.reaction = ReactionTimes()
         self.executor_realtime: bool | None = None  # asked for on the executor's own thread
         if self.realtime:
             self.clock = ControlClock(self.rate_hz, self.output.repeat)
@@ -204,13 +184,11 @@ class PolicyNode(Node):
     def _take(self, stamp: float) -> np.ndarray | None:
         """The checked observation of `stamp`, with the standstill counts updated."""
         observation = self.observations.take(stamp)
-        if observation is None:
-            return None
-        area, pusher = self.zones.area_at(0), self.observations.pusher
-        clearance = math.inf if area is None else \
-            float(area.signed_distance(torch.from_numpy(pusher[None]))[0])
-        self.standstills.update(self.observations.moved, clearance, self.robot.pusher_radius,
-                                self.loop.history is not None and bool(self.loop.waiting[0]))
+        if observation is not None:
+            self.standstills.observe(
+                self.observations.pusher, self.observations.moved, self.zones.area_at(0),
+                self.robot.pusher_radius,
+                self.loop.history is not None and bool(self.loop.waiting[0]))
         return observation
 
     def _send(self, setpoint: np.ndarray | None, stamp=None, publish: bool = True
@@ -229,9 +207,7 @@ class PolicyNode(Node):
             self._after_plan()
 
     def _after_plan(self) -> None:
-        if self.zone_change_time is not None:
-            self.replan_latency_ms = 1000 * (time.monotonic() - self.zone_change_time)
-            self.zone_change_time = None
+        self.reaction.plan_installed()
         self.plan_pub.publish(path_message(self.loop.chunk, self.get_clock().now().to_msg()))
 
     # -- zones --------------------------------------------------------------------------------
@@ -240,12 +216,10 @@ class PolicyNode(Node):
         """The zones in force changed (a message that came at `received`, time.monotonic()):
         in realtime the held setpoint is checked now and a safe one published at once (how long
         after: `zone_to_setpoint_ms` in the status)."""
-        self.zone_change_time = time.monotonic()
+        self.reaction.zone_changed()
         self.sound.zones_changed()
         if self.realtime:
-            sent = self._send(self.loop.zones_changed())
-            if sent is not None:
-                self.zone_to_setpoint_ms = 1000 * (sent - received)
+            self.reaction.safe_setpoint_sent(received, self._send(self.loop.zones_changed()))
 
     # -- status -------------------------------------------------------------------------------
 
@@ -259,22 +233,12 @@ class PolicyNode(Node):
 
     def _publish_status(self, planning_ms: float) -> None:
         values = {"configuration": self.config.name, "mode": self.mode,
-                  "violations": self.output.violations, "unsound_setpoints": self.sound.unsound,
-                  "observations_refused": self.observations.refused,
-                  "standstill_steps": self.standstills.filter.steps,
-                  "standstill_longest_s":
-                      f"{self.standstills.filter.longest / self.robot.control_hz:.1f}",
-                  "standstill_waiting_steps": self.standstills.waiting.steps,
-                  "plans": self.loop.stats.planner_calls,
-                  "planning_ms": f"{planning_ms:.1f}",
-                  "replan_latency_ms": f"{self.replan_latency_ms:.1f}",
-                  "zone_to_setpoint_ms": f"{self.zone_to_setpoint_ms:.1f}",
-                  "zones": len(self.zones), **self.zone_ingest.counts}
+                  **self.output.status(), **self.observations.status(),
+                  **self.standstills.status(self.robot.control_hz),
+                  "plans": self.loop.stats.planner_calls, "planning_ms": f"{planning_ms:.1f}",
+                  **self.reaction.status(), "zones": len(self.zones), **self.zone_ingest.counts}
         if self.realtime:
-            values.update(self.loop.status(), ticks=self.clock.ticks,
-                          ticks_missed=self.clock.missed,
-                          tick_late_p99_ms=f"{1000 * self.clock.late_p99():.1f}",
-                          clock_realtime=self.clock.realtime,
+            values.update(self.loop.status(), **self.clock.status(),
                           executor_realtime=self.executor_realtime)
             values["planning_error"] = one_line(values["planning_error"] or "")
         values["zone_ids"] = ",".join(str(i) for i in self.zones.ids)

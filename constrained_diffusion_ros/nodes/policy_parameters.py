@@ -8,12 +8,13 @@ import pickle
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.planning.config import safe_yaml
 from constrained_diffusion_ros.planning.os_scheduling import CLOCK_PRIORITY, EXECUTOR_PRIORITY
+from constrained_diffusion_ros.planning.robot import RobotModel
 from constrained_diffusion_ros.policy.device import DEVICES
 from constrained_diffusion_ros.policy.runtime import RUNTIMES
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones.area import Bounds, RestrictedArea
 from constrained_diffusion_ros.zones.grid import DEFAULT_THRESHOLD, MaskCaps
-from constrained_diffusion_ros.zones.live import DEFAULT_MAX_VERTICES, DEFAULT_MAX_ZONES
+from constrained_diffusion_ros.zones.live import DEFAULT_MAX_VERTICES, DEFAULT_MAX_ZONES, LiveZones
 from constrained_diffusion_ros.zones.plugins import load_area
 from msg_schemas.parameters import Param
 from msg_schemas.text import one_line
@@ -93,6 +94,23 @@ PARAMETERS = (
           "predicts the pusher with", read_only=True, low=0.1),
 )
 
+
+
+def robot_model(values: dict) -> RobotModel:
+    """The robot the parameters describe (PushT's pusher in the observation)."""
+    return RobotModel(**{name: values[f"robot.{name}"] for name in ROBOT_FIELDS},
+                      workspace=tuple(values["robot.workspace"]),
+                      pusher_in_observation=PUSHT_ROBOT.pusher_in_observation)
+
+
+def live_zones(values: dict, workspace: Bounds) -> LiveZones:
+    """The zones in force: their caps and the plug-in area, which must pickle where a planning
+    process will get it."""
+    area = plug_in_area(values["restricted_area"], values["restricted_area_parameters"],
+                        workspace)
+    if values["mode"] == "realtime" and values["planning_process"]:
+        check_picklable(area, values["restricted_area"])
+    return LiveZones(values["max_zones"], values["max_vertices"], area, workspace=workspace)
 
 
 def plug_in_area(spec: str, parameters: str, workspace: Bounds) -> RestrictedArea | None:

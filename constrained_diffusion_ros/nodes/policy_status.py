@@ -4,6 +4,8 @@ that failed; WARN for refused input or planning that missed its deadline)."""
 
 from __future__ import annotations
 
+import time
+
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from std_msgs.msg import Header
@@ -64,3 +66,30 @@ class StatusReporter:
         if problems:
             return DiagnosticStatus.WARN, "; ".join(problems)
         return DiagnosticStatus.OK, "running"
+
+
+class ReactionTimes:
+    """How fast the node answered its last zone change: the safe setpoint sent (from the zone
+    message's arrival) and the first plan installed after it."""
+
+    def __init__(self) -> None:
+        self.zone_changed_at: float | None = None
+        self.replan_latency_ms = self.zone_to_setpoint_ms = float("nan")
+
+    def zone_changed(self) -> None:
+        self.zone_changed_at = time.monotonic()
+
+    def safe_setpoint_sent(self, received: float, sent: float | None) -> None:
+        """The safe setpoint for a zone message that came at `received` went out at `sent`
+        (time.monotonic(); None: none sent)."""
+        if sent is not None:
+            self.zone_to_setpoint_ms = 1000 * (sent - received)
+
+    def plan_installed(self) -> None:
+        if self.zone_changed_at is not None:
+            self.replan_latency_ms = 1000 * (time.monotonic() - self.zone_changed_at)
+            self.zone_changed_at = None
+
+    def status(self) -> dict[str, object]:
+        return {"replan_latency_ms": f"{self.replan_latency_ms:.1f}",
+                "zone_to_setpoint_ms": f"{self.zone_to_setpoint_ms:.1f}"}

@@ -53,6 +53,9 @@ class SetpointOutput:
         self.violations += self.sound.inside_zone(setpoint)
         return sent
 
+    def status(self) -> dict[str, object]:
+        return {"violations": self.violations, "unsound_setpoints": self.sound.unsound}
+
     def repeat(self) -> None:
         """The setpoint in force again (the clock's tick; a lockstep answer that was lost),
         if there is one; nothing to wait on but the short lock around sending."""

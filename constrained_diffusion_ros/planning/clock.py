@@ -66,6 +66,11 @@ class ControlClock:
         latest = list(self.lateness)  # one C-level copy: the clock thread may be appending
         return float(np.percentile(latest, 99)) if latest else float("nan")
 
+    def status(self) -> dict[str, object]:
+        return {"ticks": self.ticks, "ticks_missed": self.missed,
+                "tick_late_p99_ms": f"{1000 * self.late_p99():.1f}",
+                "clock_realtime": self.realtime}
+
     def shutdown(self, timeout: float = 5.0) -> None:
         self._stop.set()
         for thread in self._threads:

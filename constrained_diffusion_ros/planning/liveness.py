@@ -7,7 +7,12 @@ as it runs (`StandstillMeter`), with one definition.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+import torch
+
+from constrained_diffusion_ros.zones.area import RestrictedArea
 
 STANDSTILL_STEPS = 5  # a standstill: at least this many control steps in a row
 STANDSTILL_PX = 0.5  # of motion per step at most
@@ -59,6 +64,19 @@ class StandstillCounts:
 
     def __init__(self) -> None:
         self.filter, self.waiting = StandstillMeter(), StandstillMeter()
+
+    def observe(self, pusher: np.ndarray, moved: float | None, area: RestrictedArea | None,
+                radius: float, waiting: bool) -> None:
+        """One observed step: the pusher at `pusher` moved `moved` px (None: a new episode),
+        with the zones `area` in force (None: none)."""
+        clearance = math.inf if area is None else \
+            float(area.signed_distance(torch.from_numpy(pusher[None]))[0])
+        self.update(moved, clearance, radius, waiting)
+
+    def status(self, control_hz: float) -> dict[str, object]:
+        return {"standstill_steps": self.filter.steps,
+                "standstill_longest_s": f"{self.filter.longest / control_hz:.1f}",
+                "standstill_waiting_steps": self.waiting.steps}
 
     def update(self, moved: float | None, clearance: float, radius: float,
                waiting: bool) -> None:

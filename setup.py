@@ -25,7 +25,7 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (SHARE, ["package.xml"]),
-        (f"{SHARE}/config", files("config/*.yaml")),
+        (f"{SHARE}/config", files("config/*.yaml") + files("config/*.json")),
         (f"{SHARE}/launch", files("launch/*.xml")),
         *model_dirs(),
     ],
@@ -41,6 +41,7 @@ setup(
             "sim_node = sim_bridge.sim_node:main",
             f"zone_publisher = {PACKAGE}.nodes.zone_publisher:main",
             f"recorder = {PACKAGE}.nodes.recorder:main",
+            f"view_node = {PACKAGE}.nodes.view_node:main",
             f"recover_bag = {PACKAGE}.evaluation.bags:main",
             f"trial = {PACKAGE}.evaluation.trial:main",
             f"train_policy = {PACKAGE}.training.train:main",

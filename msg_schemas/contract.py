@@ -49,29 +49,32 @@ class Endpoint:
 
 TOPICS: dict[str, Endpoint] = {e.key: e for e in (
     Endpoint("pusher", "geometry_msgs/msg/PointStamped", "sensor", "sim_node",
-             ("policy_node", "recorder"), "px, frame workspace; stamp = simulated time",
+             ("policy_node", "recorder", "view_node"),
+             "px, frame workspace; stamp = simulated time",
              "Pusher position after each control step"),
     Endpoint("keypoints", "geometry_msgs/msg/PolygonStamped", "sensor", "sim_node",
              ("policy_node", "recorder"), "px, frame workspace; same stamp as pusher",
              "The 9 T-block keypoints (dataset order) after each control step"),
     Endpoint("block_pose", "geometry_msgs/msg/PoseStamped", "sensor", "sim_node",
-             ("recorder",), "px and rad about z, frame workspace", "T block pose"),
-    Endpoint("score", "std_msgs/msg/Float64", "sensor", "sim_node", ("recorder",),
+             ("recorder", "view_node"), "px and rad about z, frame workspace", "T block pose"),
+    Endpoint("score", "std_msgs/msg/Float64", "sensor", "sim_node", ("recorder", "view_node"),
              "score in [0, 1] = clip(coverage / 0.95)", "Goal coverage score after each step"),
     Endpoint("setpoint", "geometry_msgs/msg/PointStamped", "sensor", "policy_node",
-             ("sim_node", "recorder"), "px, frame workspace; stamp = the observation's",
+             ("sim_node", "recorder", "view_node"),
+             "px, frame workspace; stamp = the observation's",
              "Commanded pusher target, one per control step"),
-    Endpoint("plan", "nav_msgs/msg/Path", "sensor", "policy_node", ("recorder",),
+    Endpoint("plan", "nav_msgs/msg/Path", "sensor", "policy_node", ("recorder", "view_node"),
              "px, frame workspace", "The chunk in force, from its first executed waypoint (15)"),
     Endpoint("zones", "geometry_msgs/msg/PolygonInstanceStamped", "latched",
              "zone_publisher", ("policy_node", "recorder"), "px, frame workspace",
-             "Restricted zones keyed by id: add or replace; an empty polygon removes the id"),
+             "Restricted zones keyed by id: add or replace; an empty polygon removes the id (also "
+             "published by view_node: zones drawn in the Foxglove app)"),
     Endpoint("keepout_mask", "nav_msgs/msg/OccupancyGrid", "map", "zone_publisher",
              ("policy_node", "recorder"), "cells of `resolution` px from `origin`, frame workspace",
              "A keep-out mask (nav2 keep-out filter convention: cells >= keepout_threshold are "
              "restricted, -1 free); replaces the previous mask"),
     Endpoint("zone_markers", "visualization_msgs/msg/MarkerArray", "latched",
-             "policy_node", ("recorder",), "px, frame workspace",
+             "policy_node", ("recorder", "view_node"), "px, frame workspace",
              "Zones in force for viewers: one line strip per zone, marker id = zone id, marker "
              "namespace <node namespace>/zones"),
     Endpoint("/clock", "rosgraph_msgs/msg/Clock", "clock", "sim_node",
@@ -79,7 +82,7 @@ TOPICS: dict[str, Endpoint] = {e.key: e for e in (
              "Simulated time with each observation: nodes started with use_sim_time run on it "
              "(absolute, as ROS expects)"),
     Endpoint("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", "sensor", "policy_node",
-             ("recorder",), "key/value strings",
+             ("recorder", "view_node"), "key/value strings",
              "Health (OK / WARN / ERROR) and counters: plans, planning time, zones in force by "
              "id; absolute, as every ROS diagnostics publisher"),
 )}

@@ -147,6 +147,7 @@ def zone_markers(outlines: Mapping[int, np.ndarray], stamp, namespace: str = "zo
         marker = _header(Marker(type=Marker.LINE_STRIP, action=Marker.ADD,
                                 id=marker_id(zone_id),
                                 ns=namespace if plain else f"{namespace}/named"), stamp)
+        marker.text = str(zone_id)  # the id itself, for viewers that label zones
         marker.scale.x = 2.0
         marker.color.r, marker.color.a = 1.0, 1.0
         marker.pose.orientation.w = 1.0
@@ -179,6 +180,12 @@ def occupancy_grid(values: np.ndarray, resolution: float, origin: Iterable[float
     msg.info.origin.orientation.w = 1.0
     msg.data = np.asarray(values, dtype=np.int8).ravel().tolist()
     return msg
+
+
+def zone_outlines_of(markers) -> dict[str, np.ndarray]:
+    """The zones a MarkerArray from `zone_markers` shows: id (as text) -> outline (V, 2)."""
+    return {m.text or str(m.id): np.array([(p.x, p.y) for p in m.points[:-1]], dtype=float)
+            for m in markers.markers if m.action == m.ADD and len(m.points) > 3}
 
 
 def zones_shown(markers) -> int:

@@ -32,6 +32,11 @@ from msg_schemas.text import one_line
 BAD_ARGUMENTS = 2  # exit code of a command line rclpy cannot parse, as argparse's
 
 
+class UnusableArgument(ValueError):
+    """A parameter that is well formed but cannot be used here (a port in use, an address this
+    machine does not have): exit code BAD_ARGUMENTS, as for a bad command line."""
+
+
 class RosLogHandler(logging.Handler):
     """Python `logging` records into a node's logger (and so /rosout), at their level: what a
     library logs the ROS way (a planning worker's warnings) reaches the tools that watch ROS."""
@@ -169,8 +174,8 @@ def spin_node(factory: Callable[[], Node], name: str, args: list[str] | None = N
               startup_errors: tuple[type[BaseException], ...] = ()) -> int:
     """Runs a node until Ctrl-C or shutdown. `-h`/`--help` (before `--ros-args`) prints its
     parameters and topics and exits. ROS arguments rclpy cannot parse are one line on stderr
-    (exit code 2, as the commands'); a bad parameter or file at start-up is logged in one line
-    (exit code 1). Never a traceback."""
+    (exit code 2, as the commands', and for an `UnusableArgument`); a bad parameter or file at
+    start-up is logged in one line (exit code 1). Never a traceback."""
     if answered_help(args, name, summary, parameters):
         return 0
     problem = ros_arguments_problem(args)
@@ -184,6 +189,10 @@ def spin_node(factory: Callable[[], Node], name: str, args: list[str] | None = N
         return BAD_ARGUMENTS
     try:
         node = factory()
+    except UnusableArgument as error:
+        get_logger(name).error(str(error))
+        rclpy.try_shutdown()
+        return BAD_ARGUMENTS
     except (ValueError, ParameterException, *startup_errors) as error:
         get_logger(name).error(str(error))
         rclpy.try_shutdown()

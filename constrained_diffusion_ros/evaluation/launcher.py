@@ -20,6 +20,7 @@ NODES = {  # executable name -> python module (the console scripts of setup.py)
     "policy_node": "constrained_diffusion_ros.nodes.policy_node",
     "zone_publisher": "constrained_diffusion_ros.nodes.zone_publisher",
     "recorder": "constrained_diffusion_ros.nodes.recorder",
+    "view_node": "constrained_diffusion_ros.nodes.view_node",
     "sim_node": "sim_bridge.sim_node",
 }
 ROOT = Path(__file__).resolve().parents[2]

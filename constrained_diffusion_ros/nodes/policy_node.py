@@ -236,7 +236,7 @@ class PolicyNode(Node):
                   **self.output.status(), **self.observations.status(),
                   **self.standstills.status(self.robot.control_hz),
                   "plans": self.loop.stats.planner_calls, "planning_ms": f"{planning_ms:.1f}",
-                  **self.reaction.status(), "zones": len(self.zones), **self.zone_ingest.counts}
+                  **self.reaction.status(), "zones": len(self.zones), **self.zone_ingest.status()}
         if self.realtime:
             values.update(self.loop.status(), **self.clock.status(),
                           executor_realtime=self.executor_realtime)

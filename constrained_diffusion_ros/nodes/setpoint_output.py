@@ -54,7 +54,8 @@ class SetpointOutput:
         return sent
 
     def status(self) -> dict[str, object]:
-        return {"violations": self.violations, "unsound_setpoints": self.sound.unsound}
+        return {"violations": self.violations, "unsound_setpoints": self.sound.unsound,
+                "no_free_space": self.sound.no_free_space}
 
     def repeat(self) -> None:
         """The setpoint in force again (the clock's tick; a lockstep answer that was lost),

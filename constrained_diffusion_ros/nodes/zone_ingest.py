@@ -62,6 +62,7 @@ class ZoneIngest:
         self.node, self.zones, self.workspace, self.mask_caps = node, zones, workspace, mask_caps
         self.on_change, self.realtime = on_change, realtime
         self.counts = dict.fromkeys(COUNTS, 0)
+        self.last_refusal = ""  # why the last zone or mask was refused
         # $ROS_HOME/constrained_diffusion_ros/<node>.cleared: the (id, stamp) of cleared zones,
         # so their replays stay gone after a restart (exact messages: any clock, any publisher).
         ros_home = Path(os.environ.get("ROS_HOME") or Path.home() / ".ros")
@@ -101,6 +102,9 @@ class ZoneIngest:
         if zones.fixed is not None:
             self.publish_markers()  # viewers see the plug-in check from the start
 
+    def status(self) -> dict[str, object]:
+        return {**self.counts, "zone_refusal": self.last_refusal}
+
     def shutdown(self) -> None:
         if self.mask_builder is not None:
             self.mask_builder.shutdown()
@@ -130,9 +134,11 @@ class ZoneIngest:
             zone_id = int(message.polygon.id)
             if message.header.frame_id not in ("", FRAME_ID):
                 refused += 1
-                self.node.get_logger().warning(
-                    f"zone {zone_id} refused: frame "
-                    f"{one_line(repr(message.header.frame_id), 80)} is not {FRAME_ID!r}")
+                self.last_refusal = (f"zone {zone_id}: frame "
+                                     f"{one_line(repr(message.header.frame_id), 80)} is not "
+                                     f"{FRAME_ID!r}")
+                self.node.get_logger().warning(f"zone refused, zones in force kept: "
+                                               f"{self.last_refusal}")
                 continue
             stamp = stamp_seconds(message.header.stamp) or None  # 0: unstamped, from arrival
             updates.append((zone_id, [(p.x, p.y) for p in message.polygon.polygon.points],
@@ -207,6 +213,7 @@ class ZoneIngest:
 
     def _refuse_mask(self, reason: str) -> None:
         self.counts["masks_refused"] += 1
+        self.last_refusal = f"keep-out mask: {one_line(reason, 200)}"
         self.node.get_logger().warning(f"keep-out mask refused, zones in force kept: {reason}")
 
     def _take_mask(self, built: BuiltMask) -> None:
@@ -274,6 +281,7 @@ class ZoneIngest:
         counts["zones_refused"] += len(outcome.refused) + refused_frames
         counts["zones_stale"] += outcome.stale
         for zone_id, reason in outcome.refused:
+            self.last_refusal = one_line(reason, 200)
             self.node.get_logger().warning(f"zone {zone_id} refused, zones in force kept: "
                                            f"{one_line(reason)}")
 

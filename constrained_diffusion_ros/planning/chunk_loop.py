@@ -280,9 +280,13 @@ class ChunkLoop:
 
     def status(self) -> dict[str, object]:
         """The loop's and its worker's counters, for diagnostics (`planning_error`: the
-        worker's last fault, or None)."""
+        worker's last fault, or None), and the first row's state: `holding` its last setpoint
+        (no waypoint), `shielded` (the setpoint is not the waypoint: the filter changed it)."""
         stats, worker = self.stats, self.worker
-        return {"plans": stats.plans_installed, "plans_dropped": stats.plans_dropped,
+        started = self.history is not None
+        return {"holding": started and bool(self.waiting[0]),  # no waypoint: the last held
+                "shielded": started and bool(np.any(self.setpoints[0] != self.wanted[0])),
+                "plans": stats.plans_installed, "plans_dropped": stats.plans_dropped,
                 "plans_cancelled": worker.cancelled,
                 "waypoints_skipped": self.skipped_before + self.queue.skipped,
                 "held_steps": stats.held_steps, "late_steps": stats.late_steps,

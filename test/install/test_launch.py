@@ -25,7 +25,7 @@ def test_every_executable_parameter_and_argument_it_names_exists() -> None:
     assert used <= declared and declared <= used  # none undeclared, none unused
     nodes = list(root.iter("node"))
     assert {node.get("exec") for node in nodes} == {"sim_node", "policy_node",
-                                                    "zone_publisher", "recorder"}
+                                                    "zone_publisher", "recorder", "view_node"}
     for node in nodes:
         assert node.get("pkg") == "constrained_diffusion_ros"
         module = importlib.import_module(scripts[node.get("exec")].split(":")[0])

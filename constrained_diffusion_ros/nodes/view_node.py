@@ -1,0 +1,258 @@
+"""view_node: the robot live in the Foxglove app, and zones drawn from there.
+
+Serves the scene over the Foxglove WebSocket protocol (foxglove-sdk): the walls and the goal T,
+the T block, the pusher and its setpoint, the planned chunk, the zones in force with their ids
+(keep-out masks included) and, where the policy's configuration inflates them, the grown
+outline the planner keeps the pusher's centre out of; the score and the filter's state (held,
+shielded, no free space). In the app: "Open connection", Foxglove WebSocket,
+ws://localhost:8765, then import the layout config/foxglove_layout.json.
+
+Zones from the app: a JSON message `{"id": 7, "polygon": [[x, y], ...]}` (px; [] removes the
+id) on the client channel `<namespace>/view/zone_requests` becomes the same
+PolygonInstanceStamped on `zones` that every other publisher sends; one the policy node would
+refuse is refused here, its reason shown in the view and counted on /diagnostics.
+
+The view is a process of its own, off the control path: it draws at most `rate_hz` frames a
+second from the latest messages, and a client that cannot keep up loses frames (a bounded
+backlog per client), never delays anything.
+
+Examples:
+  view_node
+  view_node --ros-args -p host:=0.0.0.0 -p port:=8766
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import threading
+import time
+
+import foxglove
+import numpy as np
+import torch
+from diagnostic_msgs.msg import DiagnosticArray
+from foxglove.channels import FrameTransformChannel, SceneUpdateChannel
+from geometry_msgs.msg import PointStamped, PolygonInstanceStamped, PoseStamped
+from nav_msgs.msg import Path as PathMsg
+from rclpy.node import Node
+from std_msgs.msg import Float64
+from visualization_msgs.msg import MarkerArray
+
+from constrained_diffusion_ros.nodes.policy_status import StatusReporter
+from constrained_diffusion_ros.paths import config_dir
+from constrained_diffusion_ros.planning.config import load_configurations
+from constrained_diffusion_ros.pusht import PUSHT_ROBOT
+from constrained_diffusion_ros.view.layout import view_channels
+from constrained_diffusion_ros.view.scene import SceneState, scene_update, view_transform
+from constrained_diffusion_ros.view.zone_requests import (
+    ZONE_REQUEST_SCHEMA,
+    ZONE_REQUEST_SCHEMA_NAME,
+    parse_zone_request,
+)
+from constrained_diffusion_ros.zones.live import DEFAULT_MAX_VERTICES
+from msg_schemas import NAMESPACE, TOPICS, qos_profile
+from msg_schemas.conversions import path_of, point_of, pose2d_of, zone_message, zone_outlines_of
+from msg_schemas.parameters import Param, declare
+from msg_schemas.spin import UnusableArgument, spin_node
+from msg_schemas.text import one_line
+
+STATUS_PERIOD_S = 1.0
+MAX_PENDING_ZONES = 1000  # zone requests waiting for the next frame at most; more are refused
+
+PARAMETERS = (
+    Param("host", "127.0.0.1", "interface the WebSocket server binds (0.0.0.0: every one)",
+          read_only=True),
+    Param("port", 8765, "WebSocket port; 0: any free one (logged)", read_only=True, low=0,
+          high=65535),
+    Param("rate_hz", 20.0, "frames a second at most (the scene as the latest messages say)",
+          read_only=True, low=0.5, high=100.0),
+    Param("backlog", 32, "messages queued per client at most; a slow client loses the oldest",
+          read_only=True, low=1, high=10_000),
+    Param("policy_node", "policy_node", "the policy node whose state and configuration are "
+          "shown (a name in this namespace)", read_only=True),
+    Param("configurations_file", str(config_dir() / "configurations.yaml"),
+          "constraint configurations YAML (which ones inflate the zones)", read_only=True),
+    Param("max_vertices", DEFAULT_MAX_VERTICES, "vertices a zone request may have at most, as "
+          "the policy node's parameter", read_only=True, low=3, high=100_000),
+)
+
+
+class ZoneRequests:
+    """Zone requests from the app's clients (taken on the server's threads), checked, coalesced
+    to the last per id until the node publishes them; refusals counted with their reason."""
+
+    def __init__(self, topic: str, max_vertices: int) -> None:
+        self.topic, self.max_vertices = topic, max_vertices
+        self.counts = {"zone_messages": 0, "zones_refused": 0}
+        self.reason = ""  # the last refusal
+        self.pending: dict[int, np.ndarray] = {}
+        self._channels: dict[tuple[int, int], str] = {}  # (client, channel) -> topic
+        self._lock = threading.Lock()
+
+    def advertised(self, client: int, channel: int, topic: str) -> None:
+        with self._lock:
+            self._channels[(client, channel)] = topic
+
+    def unadvertised(self, client: int, channel: int) -> None:
+        with self._lock:
+            self._channels.pop((client, channel), None)
+
+    def received(self, client: int, channel: int, payload: bytes) -> None:
+        with self._lock:
+            self.counts["zone_messages"] += 1
+            topic = self._channels.get((client, channel))
+            try:
+                if topic != self.topic:
+                    raise ValueError(f"the view takes zones on {self.topic}, not on {topic}")
+                if len(self.pending) >= MAX_PENDING_ZONES:
+                    raise ValueError(f"{MAX_PENDING_ZONES} zone requests waiting already")
+                zone_id, vertices = parse_zone_request(payload, self.max_vertices,
+                                                       PUSHT_ROBOT.workspace)
+            except ValueError as error:
+                self.counts["zones_refused"] += 1
+                self.reason = one_line(str(error), 200)
+                return
+            self.pending[zone_id] = vertices
+
+    def take(self) -> dict[int, np.ndarray]:
+        with self._lock:
+            pending, self.pending = self.pending, {}
+        return pending
+
+
+class _Listener(foxglove.ServerListener):
+    def __init__(self, requests: ZoneRequests) -> None:
+        self.requests = requests
+
+    def on_client_advertise(self, client, channel) -> None:
+        self.requests.advertised(client.id, channel.id, channel.topic)
+
+    def on_client_unadvertise(self, client, client_channel_id: int) -> None:
+        self.requests.unadvertised(client.id, client_channel_id)
+
+    def on_message_data(self, client, client_channel_id: int, data: bytes) -> None:
+        self.requests.received(client.id, client_channel_id, data)
+
+
+class ViewNode(Node):
+    def __init__(self) -> None:
+        super().__init__("view_node", namespace=NAMESPACE)
+        self.values = values = declare(self, PARAMETERS)
+        torch.set_num_threads(1)  # zone checks only: the cores are the policy's
+        prefix = self.get_namespace().rstrip("/")
+        channels = view_channels(prefix)
+        self.policy_name = f"{prefix}/{values['policy_node']}"
+        self.configurations = load_configurations(values["configurations_file"])
+        self.state = SceneState(pusher_radius=PUSHT_ROBOT.pusher_radius)
+        self.requests = ZoneRequests(channels["zone_requests"], values["max_vertices"])
+        self.shown_refusal = ""
+        self.frames, self._dirty = 0, True
+        self.foxglove = foxglove.Context()
+        self.scene_channel = SceneUpdateChannel(channels["scene"], context=self.foxglove)
+        self.transform_channel = FrameTransformChannel(channels["transforms"],
+                                                       context=self.foxglove)
+        self.status_channel = foxglove.Channel(channels["status"], context=self.foxglove,
+                                               message_encoding="json")
+        # The request channel is the client's; advertised here only so the layout's Publish
+        # panel finds its schema.
+        self.request_channel = foxglove.Channel(
+            self.requests.topic, context=self.foxglove, message_encoding="json",
+            schema=foxglove.Schema(name=ZONE_REQUEST_SCHEMA_NAME, encoding="jsonschema",
+                                   data=json.dumps(ZONE_REQUEST_SCHEMA).encode()))
+        try:
+            self.server = foxglove.start_server(
+                name=f"constrained_diffusion_ros {prefix or '/'}", host=values["host"],
+                port=values["port"], context=self.foxglove,
+                capabilities=[foxglove.Capability.ClientPublish], supported_encodings=["json"],
+                server_listener=_Listener(self.requests),
+                message_backlog_size=values["backlog"])
+        except RuntimeError as error:
+            raise UnusableArgument(f"cannot serve the view on {values['host']}:{values['port']}"
+                                   f": {one_line(str(error)).split(': ')[-1]}") from None
+        self.zone_pub = self.create_publisher(PolygonInstanceStamped, TOPICS["zones"].name,
+                                              qos_profile(TOPICS["zones"], "publisher"))
+        self._subscribe()
+        self.status = StatusReporter(self)
+        self.create_timer(1.0 / values["rate_hz"], self._on_frame)
+        self.create_timer(STATUS_PERIOD_S, self._on_status)
+        self.get_logger().info(f"view on ws://{values['host']}:{self.server.port} "
+                               f"(Foxglove: Open connection; layout config/foxglove_layout.json)")
+
+    def destroy_node(self) -> None:
+        self.server.stop()
+        super().destroy_node()
+
+    def _subscribe(self) -> None:
+        """Each topic keeps its part of the scene state: the latest message, converted."""
+        for part, topic, message_type, convert in (
+                ("pusher", "pusher", PointStamped, point_of),
+                ("setpoint", "setpoint", PointStamped, point_of),
+                ("block_pose", "block_pose", PoseStamped, pose2d_of),
+                ("plan", "plan", PathMsg, path_of),
+                ("zones", "zone_markers", MarkerArray, zone_outlines_of),
+                ("score", "score", Float64, lambda msg: float(msg.data))):
+            self.create_subscription(message_type, TOPICS[topic].name,
+                                     self._keeper(part, convert), qos_profile(TOPICS[topic]))
+        self.create_subscription(DiagnosticArray, TOPICS["diagnostics"].name,
+                                 self._on_diagnostics, qos_profile(TOPICS["diagnostics"]))
+
+    def _keeper(self, part: str, convert):
+        def on_message(msg) -> None:
+            setattr(self.state, part, convert(msg))
+            self._dirty = True
+        return on_message
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            if status.name != self.policy_name:
+                continue
+            values = {kv.key: kv.value for kv in status.values}
+            state = self.state
+            config = self.configurations.get(values.get("configuration", ""))
+            state.inflate_px = PUSHT_ROBOT.pusher_radius if config and config.inflate else 0.0
+            state.filter_state = ", ".join(name for key, name in (
+                ("no_free_space", "no free space"), ("holding", "held"),
+                ("shielded", "shielded")) if values.get(key) == "True")
+            state.policy_status = one_line(status.message, 120)
+            if values.get("zone_refusal"):
+                self._show_refusal(values["zone_refusal"])
+            self._dirty = True
+
+    def _show_refusal(self, reason: str) -> None:
+        if reason != self.shown_refusal:
+            self.shown_refusal = self.state.refusal = reason
+            self.server.publish_status(f"zone refused: {reason}", foxglove.StatusLevel.Warning)
+
+    def _on_frame(self) -> None:
+        """Zone requests out to ROS, then the scene, if anything changed."""
+        stamp = self.get_clock().now()
+        for zone_id, vertices in self.requests.take().items():
+            self.zone_pub.publish(zone_message(zone_id, vertices if len(vertices) else None,
+                                               stamp.to_msg()))
+        if self.requests.reason:
+            self._show_refusal(self.requests.reason)
+        if not self._dirty:
+            return
+        self._dirty = False
+        now_ns = time.time_ns()
+        self.transform_channel.log(view_transform(now_ns), log_time=now_ns)
+        self.scene_channel.log(scene_update(self.state, now_ns), log_time=now_ns)
+        state = self.state
+        self.status_channel.log(json.dumps(
+            {"score": state.score, "filter": state.filter_state or "free",
+             "policy": state.policy_status, "zone_refused": state.refusal,
+             "zones": sorted(state.zones)}), log_time=now_ns)
+        self.frames += 1
+
+    def _on_status(self) -> None:
+        self.status.publish({**self.requests.counts, "zone_refusal": self.requests.reason,
+                             "frames": self.frames, "port": self.server.port})
+
+
+def main(args: list[str] | None = None) -> int:
+    return spin_node(ViewNode, "view_node", args, PARAMETERS, __doc__)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -43,17 +43,23 @@ TRIAL_TOPICS = {"pusher": "pusher", "block": "block_pose",
 
 def read_messages(bag: str | Path) -> dict[str, list]:
     """Every message of a bag, deserialised, in recording order, per topic."""
-    typestore = get_typestore(Stores.ROS2_JAZZY)
     messages: dict[str, list] = defaultdict(list)
+    for _time_ns, topic, message in read_timed_messages(bag):
+        messages[topic].append(message)
+    return dict(messages)
+
+
+def read_timed_messages(bag: str | Path) -> list[tuple[int, str, object]]:
+    """(record time in ns, topic, message) of every message of a bag, in recording order."""
+    typestore = get_typestore(Stores.ROS2_JAZZY)
     try:
         with Reader(Path(bag)) as reader:
-            for connection, _timestamp, raw in reader.messages():
-                messages[connection.topic].append(
-                    typestore.deserialize_cdr(raw, connection.msgtype))
+            return [(timestamp, connection.topic,
+                     typestore.deserialize_cdr(raw, connection.msgtype))
+                    for connection, timestamp, raw in reader.messages()]
     except ReaderError as error:
         raise ValueError(f"{bag}: not a closed bag ({error}); if its recorder died, run "
                          f"`recover_bag {bag}`") from None
-    return dict(messages)
 
 
 def messages_of(messages: dict[str, list], endpoint: Endpoint) -> list:

@@ -23,13 +23,20 @@ import numpy as np
 import yaml
 
 from constrained_diffusion_ros.cli import ArgumentParser, positive_int, run_command
-from constrained_diffusion_ros.evaluation.bags import read_trial, read_unfinished, trial_steps
+from constrained_diffusion_ros.evaluation.bags import (
+    read_timed_messages,
+    read_trial,
+    read_unfinished,
+    trial_steps,
+)
 from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_domain_id
 from constrained_diffusion_ros.evaluation.rollout import RolloutLog
 from constrained_diffusion_ros.evaluation.scenarios import Scenario, load_scenarios
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.planning.config import load_configurations
 from constrained_diffusion_ros.policy.weights import load_policy
+from constrained_diffusion_ros.pusht import PUSHT_ROBOT
+from constrained_diffusion_ros.view.replay import write_scene
 from constrained_diffusion_ros.zones.grid import MaskCaps
 from msg_schemas import NAMESPACE, SERVICES, TOPICS
 from msg_schemas.conversions import point_of, pose2d_of, step_of_stamp, zones_shown
@@ -356,6 +363,13 @@ def make_figures(output: Path, scenario, args: argparse.Namespace, received: dic
                            setpoint=log.commanded[0, min(t, args.steps - 1)])
               for t in range(0, args.steps + 1, 2)]
     iio.imwrite(output / "trial.gif", np.stack(frames), duration=100, loop=0)
+    try:  # the live view's scene, for the Foxglove app
+        inflating = {name for name, config in
+                     load_configurations(args.configurations_file).items() if config.inflate}
+        write_scene(read_timed_messages(output / "bag"), output / "scene.mcap", inflating,
+                    PUSHT_ROBOT.pusher_radius)
+    except ValueError as error:  # a bag not closed: said above already
+        print(f"trial: warning: no scene.mcap ({error})", file=sys.stderr)
 
 
 TRIAL_FAILED = 1  # the nodes failed or timed out: not a bad argument
@@ -376,7 +390,8 @@ def run(args: argparse.Namespace) -> int:
           f"{results['s']:.3f}, final score {results['final_score']:.3f}, setpoints inside "
           f"zones r = {results.get('r', 0):.0f}, body overlaps r_body = "
           f"{results.get('r_body', 0):.0f}")
-    print(f"wrote {output}/bag (rosbag2, MCAP), {output}/frames.png, {output}/trial.gif")
+    print(f"wrote {output}/bag (rosbag2, MCAP), {output}/frames.png, {output}/trial.gif, "
+          f"{output}/scene.mcap (the scene for the Foxglove app)")
     return 0
 
 

@@ -33,18 +33,21 @@ import numpy as np
 import torch
 from diagnostic_msgs.msg import DiagnosticArray
 from foxglove.channels import FrameTransformChannel, SceneUpdateChannel
-from geometry_msgs.msg import PointStamped, PolygonInstanceStamped, PoseStamped
-from nav_msgs.msg import Path as PathMsg
+from geometry_msgs.msg import PolygonInstanceStamped
 from rclpy.node import Node
-from std_msgs.msg import Float64
-from visualization_msgs.msg import MarkerArray
 
 from constrained_diffusion_ros.nodes.policy_status import StatusReporter
 from constrained_diffusion_ros.paths import config_dir
 from constrained_diffusion_ros.planning.config import load_configurations
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.view.layout import view_channels
-from constrained_diffusion_ros.view.scene import SceneState, scene_update, view_transform
+from constrained_diffusion_ros.view.scene import (
+    PARTS,
+    SceneState,
+    scene_update,
+    take_policy_status,
+    view_transform,
+)
 from constrained_diffusion_ros.view.zone_requests import (
     ZONE_REQUEST_SCHEMA,
     ZONE_REQUEST_SCHEMA_NAME,
@@ -52,7 +55,7 @@ from constrained_diffusion_ros.view.zone_requests import (
 )
 from constrained_diffusion_ros.zones.live import DEFAULT_MAX_VERTICES
 from msg_schemas import NAMESPACE, TOPICS, qos_profile
-from msg_schemas.conversions import path_of, point_of, pose2d_of, zone_message, zone_outlines_of
+from msg_schemas.conversions import zone_message
 from msg_schemas.parameters import Param, declare
 from msg_schemas.spin import UnusableArgument, spin_node
 from msg_schemas.text import one_line
@@ -143,10 +146,12 @@ class ViewNode(Node):
         prefix = self.get_namespace().rstrip("/")
         channels = view_channels(prefix)
         self.policy_name = f"{prefix}/{values['policy_node']}"
-        self.configurations = load_configurations(values["configurations_file"])
+        self.inflating = {name for name, config in
+                          load_configurations(values["configurations_file"]).items()
+                          if config.inflate}
         self.state = SceneState(pusher_radius=PUSHT_ROBOT.pusher_radius)
         self.requests = ZoneRequests(channels["zone_requests"], values["max_vertices"])
-        self.shown_refusal = ""
+        self.shown_view_refusal = ""
         self.frames, self._dirty = 0, True
         self.foxglove = foxglove.Context()
         self.scene_channel = SceneUpdateChannel(channels["scene"], context=self.foxglove)
@@ -185,15 +190,10 @@ class ViewNode(Node):
 
     def _subscribe(self) -> None:
         """Each topic keeps its part of the scene state: the latest message, converted."""
-        for part, topic, message_type, convert in (
-                ("pusher", "pusher", PointStamped, point_of),
-                ("setpoint", "setpoint", PointStamped, point_of),
-                ("block_pose", "block_pose", PoseStamped, pose2d_of),
-                ("plan", "plan", PathMsg, path_of),
-                ("zones", "zone_markers", MarkerArray, zone_outlines_of),
-                ("score", "score", Float64, lambda msg: float(msg.data))):
-            self.create_subscription(message_type, TOPICS[topic].name,
-                                     self._keeper(part, convert), qos_profile(TOPICS[topic]))
+        for part, (topic, convert) in PARTS.items():
+            endpoint = TOPICS[topic]
+            self.create_subscription(endpoint.message_class(), endpoint.name,
+                                     self._keeper(part, convert), qos_profile(endpoint))
         self.create_subscription(DiagnosticArray, TOPICS["diagnostics"].name,
                                  self._on_diagnostics, qos_profile(TOPICS["diagnostics"]))
 
@@ -205,24 +205,20 @@ class ViewNode(Node):
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
         for status in msg.status:
-            if status.name != self.policy_name:
-                continue
-            values = {kv.key: kv.value for kv in status.values}
-            state = self.state
-            config = self.configurations.get(values.get("configuration", ""))
-            state.inflate_px = PUSHT_ROBOT.pusher_radius if config and config.inflate else 0.0
-            state.filter_state = ", ".join(name for key, name in (
-                ("no_free_space", "no free space"), ("holding", "held"),
-                ("shielded", "shielded")) if values.get(key) == "True")
-            state.policy_status = one_line(status.message, 120)
-            if values.get("zone_refusal"):
-                self._show_refusal(values["zone_refusal"])
-            self._dirty = True
+            if status.name == self.policy_name:
+                before = self.state.policy_refusal
+                take_policy_status(self.state, status.message,
+                                   {kv.key: kv.value for kv in status.values},
+                                   self.inflating, PUSHT_ROBOT.pusher_radius)
+                if self.state.policy_refusal != before:
+                    self._show_refusal(self.state.policy_refusal)
+                self._dirty = True
 
     def _show_refusal(self, reason: str) -> None:
-        if reason != self.shown_refusal:
-            self.shown_refusal = self.state.refusal = reason
-            self.server.publish_status(f"zone refused: {reason}", foxglove.StatusLevel.Warning)
+        """In the scene and as a warning in the app, until another."""
+        self.state.refusal = reason
+        self._dirty = True
+        self.server.publish_status(f"zone refused: {reason}", foxglove.StatusLevel.Warning)
 
     def _on_frame(self) -> None:
         """Zone requests out to ROS, then the scene, if anything changed."""
@@ -230,7 +226,8 @@ class ViewNode(Node):
         for zone_id, vertices in self.requests.take().items():
             self.zone_pub.publish(zone_message(zone_id, vertices if len(vertices) else None,
                                                stamp.to_msg()))
-        if self.requests.reason:
+        if self.requests.reason != self.shown_view_refusal:
+            self.shown_view_refusal = self.requests.reason
             self._show_refusal(self.requests.reason)
         if not self._dirty:
             return

@@ -34,6 +34,8 @@ from foxglove.messages import (
 
 from constrained_diffusion_ros.zones.geometry import QUAD_SEGS
 from msg_schemas import FRAME_ID
+from msg_schemas.conversions import path_of, point_of, pose2d_of, zone_outlines_of
+from msg_schemas.text import one_line
 from sim_bridge.scene import GOAL_POSE, WALLS, WORKSPACE_SIZE, tee_polygons
 
 VIEW_FRAME = "view"  # the workspace's centre, x right and y up the screen
@@ -65,7 +67,29 @@ class SceneState:
     pusher_radius: float = 15.0
     filter_state: str = ""  # "held", "shielded", "no free space", or ""
     policy_status: str = ""  # the policy node's diagnostic message
-    refusal: str = ""  # why the last zone asked for from the view was refused
+    refusal: str = ""  # why the last zone was refused (the view's or the policy's)
+    policy_refusal: str = ""  # the policy node's last zone refusal
+
+
+# Scene state part <- (contract topic, its message converted): live and from a bag alike.
+PARTS = {"pusher": ("pusher", point_of), "setpoint": ("setpoint", point_of),
+         "block_pose": ("block_pose", pose2d_of), "plan": ("plan", path_of),
+         "zones": ("zone_markers", zone_outlines_of), "score": ("score", lambda m: float(m.data))}
+FILTER_STATES = (("no_free_space", "no free space"), ("holding", "held"),
+                 ("shielded", "shielded"))
+
+
+def take_policy_status(state: SceneState, message: str, values: dict[str, str],
+                       inflating: set[str], pusher_radius: float) -> None:
+    """The policy node's /diagnostics into the scene: its message, the filter's state, whether
+    its configuration (one of `inflating`) grows the zones, and its last zone refusal."""
+    state.inflate_px = pusher_radius if values.get("configuration") in inflating else 0.0
+    state.filter_state = ", ".join(name for key, name in FILTER_STATES
+                                   if values.get(key) == "True")
+    state.policy_status = one_line(message, 120)
+    refusal = values.get("zone_refusal", "")
+    if refusal and refusal != state.policy_refusal:  # news: shown until another refusal
+        state.policy_refusal = state.refusal = refusal
 
 
 def view_transform(stamp_ns: int = 0) -> FrameTransform:

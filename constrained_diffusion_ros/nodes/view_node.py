@@ -9,8 +9,10 @@ ws://localhost:8765, then import the layout config/foxglove_layout.json.
 
 Zones from the app: a JSON message `{"id": 7, "polygon": [[x, y], ...]}` (px; [] removes the
 id) on the client channel `<namespace>/view/zone_requests` becomes the same
-PolygonInstanceStamped on `zones` that every other publisher sends; one the policy node would
-refuse is refused here, its reason shown in the view and counted on /diagnostics.
+PolygonInstanceStamped on `zones` that every other publisher sends. A request whose polygon the
+policy node would refuse (its checks and vertex cap) is refused here; what the policy refuses
+itself (its cap on zones in force) comes back on its /diagnostics. Either reason is shown in the
+view and sent to the app as a warning; the view's refusals are counted on /diagnostics.
 
 The view is a process of its own, off the control path: it draws at most `rate_hz` frames a
 second from the latest messages, and a client that cannot keep up loses frames (a bounded

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 FRAME_ID = "workspace"  # PushT workspace: 512 x 512 px, origin top-left, y down (as the image)
 NAMESPACE = "pusht"  # every node's namespace unless `__ns` says otherwise
+OPTIONAL_NODES = ("view_node",)  # a stack runs with or without them: nobody waits for them
 
 
 @dataclass(frozen=True)

@@ -114,6 +114,9 @@ def build_parser() -> argparse.ArgumentParser:
                              "default: the node's)")
     parser.add_argument("--every-tick", action="store_true",
                         help="the policy node with replan_every_tick:=true")
+    parser.add_argument("--view", action="store_true",
+                        help="also run view_node with a Foxglove WebSocket client subscribed "
+                             "to every channel it serves")
     return parser
 
 
@@ -593,6 +596,64 @@ def background_load(count: int) -> Iterator[None]:
             process.wait()
 
 
+@contextlib.contextmanager
+def watching(children: NodeProcesses, on: bool) -> Iterator[dict[str, int]]:
+    """view_node on a free port and a WebSocket client (a thread) subscribed to every channel
+    it serves, counting what it receives, while the trials run; nothing if not `on`."""
+    counts = {"frames": 0, "bytes": 0}
+    if not on:
+        yield counts
+        return
+    import json
+    import socket
+
+    from websockets.sync.client import connect
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    children.start("view_node", port=port)
+    stop = threading.Event()
+
+    def client() -> None:
+        deadline = time.monotonic() + 60
+        while not stop.is_set() and time.monotonic() < deadline:
+            try:
+                ws = connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"],
+                             max_size=None)
+                break
+            except OSError:
+                time.sleep(0.2)
+        else:
+            return
+        with ws:
+            subscribed = 0
+            while not stop.is_set():
+                try:
+                    frame = ws.recv(timeout=0.2)
+                except TimeoutError:
+                    continue
+                if isinstance(frame, str):
+                    op = json.loads(frame)
+                    if op["op"] == "advertise":
+                        subscriptions = [{"id": subscribed + k + 1, "channelId": c["id"]}
+                                         for k, c in enumerate(op["channels"])]
+                        subscribed += len(subscriptions)
+                        ws.send(json.dumps({"op": "subscribe",
+                                            "subscriptions": subscriptions}))
+                    continue
+                counts["frames"] += 1
+                counts["bytes"] += len(frame)
+
+    thread = threading.Thread(target=client, daemon=True)
+    thread.start()
+    try:
+        yield counts
+    finally:
+        stop.set()
+        thread.join(5)
+
+
 def run_condition(args: argparse.Namespace, loaded: bool) -> None:
     label = f"loaded ({args.load} busy process(es))" if loaded else "idle"
     print(f"\n== {label}, {os.cpu_count()} cores, {args.rate_hz:g} Hz ==", flush=True)
@@ -619,12 +680,16 @@ def run_condition(args: argparse.Namespace, loaded: bool) -> None:
                 result = Condition()
                 before = cpu_times()
                 attempt = 0  # scenes without room for a zone are skipped; the next seed is tried
-                with flooding(domain_id, args.trial_flood_hz, args.trial_flood_vertices):
+                with flooding(domain_id, args.trial_flood_hz, args.trial_flood_vertices), \
+                        watching(children, args.view) as viewed:
                     while result.trials < args.trials and attempt < MAX_ATTEMPTS * args.trials:
                         run_trial(client, attempt, FIRST_SEED + attempt, args, result)
                         attempt += 1
                         print(".", end="", flush=True)
                 print()
+                if args.view:
+                    print(f"  (view_node served the trials to a client subscribed to everything:"
+                          f" {viewed['frames']} messages, {viewed['bytes'] / 1e6:.1f} MB)")
                 if args.trial_flood_hz > 0:
                     print(f"  (the trials ran beside a flood of {args.trial_flood_hz:g} zone "
                           f"messages a second, {FLOOD_IDS} ids of {args.trial_flood_vertices} "

@@ -38,7 +38,7 @@ from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.view.replay import write_scene
 from constrained_diffusion_ros.zones.grid import MaskCaps
-from msg_schemas import NAMESPACE, SERVICES, TOPICS
+from msg_schemas import NAMESPACE, OPTIONAL_NODES, SERVICES, TOPICS
 from msg_schemas.conversions import point_of, pose2d_of, step_of_stamp, zones_shown
 from sim_bridge import CONTROL_HZ
 
@@ -220,11 +220,11 @@ def run_trial(args: argparse.Namespace) -> dict:
                        failed=children.failed, what=what)
 
         def subscribed(topic: str) -> bool:
-            """Every node the contract names as a subscriber of `topic` is in the graph (counted
-            without this node's own subscriptions)."""
+            """Every node the contract names as a subscriber of `topic` (but the optional
+            ones) is in the graph (counted without this node's own subscriptions)."""
             own = sum(s.topic_name == TOPICS[topic].resolved() for s in node.subscriptions)
-            return node.count_subscribers(TOPICS[topic].name) - own >= \
-                len(TOPICS[topic].subscribers)
+            needed = set(TOPICS[topic].subscribers) - set(OPTIONAL_NODES)
+            return node.count_subscribers(TOPICS[topic].name) - own >= len(needed)
 
         def discovered() -> bool:
             ready = (node.count_publishers(TOPICS["setpoint"].name) >= 1 and subscribed("setpoint")

@@ -27,11 +27,9 @@ from __future__ import annotations
 
 import json
 import sys
-import threading
 import time
 
 import foxglove
-import numpy as np
 import torch
 from diagnostic_msgs.msg import DiagnosticArray
 from foxglove.channels import FrameTransformChannel, SceneUpdateChannel
@@ -53,7 +51,7 @@ from constrained_diffusion_ros.view.scene import (
 from constrained_diffusion_ros.view.zone_requests import (
     ZONE_REQUEST_SCHEMA,
     ZONE_REQUEST_SCHEMA_NAME,
-    parse_zone_request,
+    ZoneRequests,
 )
 from constrained_diffusion_ros.zones.live import DEFAULT_MAX_VERTICES
 from msg_schemas import NAMESPACE, TOPICS, qos_profile
@@ -63,7 +61,6 @@ from msg_schemas.spin import UnusableArgument, spin_node
 from msg_schemas.text import one_line
 
 STATUS_PERIOD_S = 1.0
-MAX_PENDING_ZONES = 1000  # zone requests waiting for the next frame at most; more are refused
 
 PARAMETERS = (
     Param("host", "127.0.0.1", "interface the WebSocket server binds (0.0.0.0: every one)",
@@ -81,49 +78,6 @@ PARAMETERS = (
     Param("max_vertices", DEFAULT_MAX_VERTICES, "vertices a zone request may have at most, as "
           "the policy node's parameter", read_only=True, low=3, high=100_000),
 )
-
-
-class ZoneRequests:
-    """Zone requests from the app's clients (taken on the server's threads), checked, coalesced
-    to the last per id until the node publishes them; refusals counted with their reason."""
-
-    def __init__(self, topic: str, max_vertices: int) -> None:
-        self.topic, self.max_vertices = topic, max_vertices
-        self.counts = {"zone_messages": 0, "zones_refused": 0}
-        self.reason = ""  # the last refusal
-        self.pending: dict[int, np.ndarray] = {}
-        self._channels: dict[tuple[int, int], str] = {}  # (client, channel) -> topic
-        self._lock = threading.Lock()
-
-    def advertised(self, client: int, channel: int, topic: str) -> None:
-        with self._lock:
-            self._channels[(client, channel)] = topic
-
-    def unadvertised(self, client: int, channel: int) -> None:
-        with self._lock:
-            self._channels.pop((client, channel), None)
-
-    def received(self, client: int, channel: int, payload: bytes) -> None:
-        with self._lock:
-            self.counts["zone_messages"] += 1
-            topic = self._channels.get((client, channel))
-            try:
-                if topic != self.topic:
-                    raise ValueError(f"the view takes zones on {self.topic}, not on {topic}")
-                if len(self.pending) >= MAX_PENDING_ZONES:
-                    raise ValueError(f"{MAX_PENDING_ZONES} zone requests waiting already")
-                zone_id, vertices = parse_zone_request(payload, self.max_vertices,
-                                                       PUSHT_ROBOT.workspace)
-            except ValueError as error:
-                self.counts["zones_refused"] += 1
-                self.reason = one_line(str(error), 200)
-                return
-            self.pending[zone_id] = vertices
-
-    def take(self) -> dict[int, np.ndarray]:
-        with self._lock:
-            pending, self.pending = self.pending, {}
-        return pending
 
 
 class _Listener(foxglove.ServerListener):
@@ -152,7 +106,8 @@ class ViewNode(Node):
                           load_configurations(values["configurations_file"]).items()
                           if config.inflate}
         self.state = SceneState(pusher_radius=PUSHT_ROBOT.pusher_radius)
-        self.requests = ZoneRequests(channels["zone_requests"], values["max_vertices"])
+        self.requests = ZoneRequests(channels["zone_requests"], values["max_vertices"],
+                                     PUSHT_ROBOT.workspace)
         self.shown_view_refusal = ""
         self.frames, self._dirty = 0, True
         self.foxglove = foxglove.Context()

@@ -10,6 +10,7 @@ refused here with the reason, so the operator sees why in the view.
 from __future__ import annotations
 
 import json
+import threading
 
 import numpy as np
 
@@ -30,6 +31,7 @@ ZONE_REQUEST_SCHEMA = {
 }
 ZONE_REQUEST_EXAMPLE = {"id": 100, "polygon": [[200, 140], [260, 140], [260, 200], [200, 200]]}
 MAX_REQUEST_BYTES = 64 * 1024  # a request is a few hundred bytes; more is refused unread
+MAX_PENDING_ZONES = 1000  # ids waiting to be published at most; requests for more are refused
 ID_RANGE = (-2**63, 2**63)  # PolygonInstance ids are int64
 
 
@@ -64,3 +66,55 @@ def parse_zone_request(payload: bytes, max_vertices: int, workspace: Bounds
     vertices = np.asarray(polygon, dtype=float)
     validate_polygon(vertices, f"zone {zone_id}", workspace)
     return zone_id, vertices
+
+
+class ZoneRequests:
+    """Zone requests from the app's clients, taken on the server's threads: checked, coalesced
+    to the last per id until `take`n (the node publishes them at its next frame); refusals
+    counted (`counts`) with the last reason (`reason`). Only requests on `topic` are taken."""
+
+    def __init__(self, topic: str, max_vertices: int, workspace: Bounds) -> None:
+        self.topic, self.max_vertices, self.workspace = topic, max_vertices, workspace
+        self.counts = {"zone_messages": 0, "zones_refused": 0}
+        self.reason = ""
+        self._pending: dict[int, np.ndarray] = {}
+        self._channels: dict[tuple[int, int], str] = {}  # (client, channel) -> topic
+        self._lock = threading.Lock()
+
+    def advertised(self, client: int, channel: int, topic: str) -> None:
+        with self._lock:
+            self._channels[(client, channel)] = topic
+
+    def unadvertised(self, client: int, channel: int) -> None:
+        with self._lock:
+            self._channels.pop((client, channel), None)
+
+    def received(self, client: int, channel: int, payload: bytes) -> None:
+        with self._lock:
+            self.counts["zone_messages"] += 1
+            topic = self._channels.get((client, channel))
+        try:
+            if topic != self.topic:
+                raise ValueError(f"the view takes zones on {self.topic}, not on {topic}")
+            zone_id, vertices = parse_zone_request(payload, self.max_vertices, self.workspace)
+        except ValueError as error:
+            self._refuse(str(error))
+            return
+        with self._lock:
+            if zone_id not in self._pending and len(self._pending) >= MAX_PENDING_ZONES:
+                full = True
+            else:
+                full, self._pending[zone_id] = False, vertices
+        if full:
+            self._refuse(f"zone {zone_id}: {MAX_PENDING_ZONES} zone requests waiting already")
+
+    def take(self) -> dict[int, np.ndarray]:
+        """The requests since the last take, the last per id (vertices (0, 2): remove)."""
+        with self._lock:
+            pending, self._pending = self._pending, {}
+        return pending
+
+    def _refuse(self, reason: str) -> None:
+        with self._lock:
+            self.counts["zones_refused"] += 1
+            self.reason = one_line(reason, 200)

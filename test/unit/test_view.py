@@ -15,7 +15,11 @@ from mcap.reader import make_reader
 
 from constrained_diffusion_ros.view.replay import write_scene
 from constrained_diffusion_ros.view.scene import SceneState, scene_update, take_policy_status
-from constrained_diffusion_ros.view.zone_requests import parse_zone_request
+from constrained_diffusion_ros.view.zone_requests import (
+    MAX_PENDING_ZONES,
+    ZoneRequests,
+    parse_zone_request,
+)
 
 pytestmark = pytest.mark.unit
 WORKSPACE = (0.0, 0.0, 512.0, 512.0)
@@ -114,3 +118,28 @@ def test_a_recording_replays_as_one_scene_frame_per_pusher_message(tmp_path) -> 
     last.ParseFromString(scenes[-1][1])
     entities = {e.id: e for e in last.entities}
     assert entities["pusher"].cylinders[0].pose.position.x == 12.0 and "zone/5" in entities
+
+
+def test_zone_requests_are_taken_on_their_channel_only_coalesced_per_id_and_capped() -> None:
+    requests = ZoneRequests("/pusht/view/zone_requests", 64, WORKSPACE)
+    requests.advertised(1, 3, "/pusht/view/zone_requests")
+    requests.advertised(1, 4, "/elsewhere")
+
+    def request(zone_id: int, vertices) -> bytes:
+        return json.dumps({"id": zone_id, "polygon": np.asarray(vertices).tolist()}).encode()
+
+    requests.received(1, 3, request(7, SQUARE))
+    requests.received(1, 3, request(7, SQUARE + 10))  # the last per id is what goes out
+    requests.received(1, 3, request(8, []))
+    requests.received(1, 4, request(9, SQUARE))  # another topic
+    requests.received(2, 3, request(9, SQUARE))  # a channel this client never advertised
+    taken = requests.take()
+    assert sorted(taken) == [7, 8] and np.array_equal(taken[7], SQUARE + 10)
+    assert taken[8].shape == (0, 2) and requests.take() == {}
+    assert requests.counts == {"zone_messages": 5, "zones_refused": 2}
+    assert "takes zones on /pusht/view/zone_requests, not on None" in requests.reason
+    for zone_id in range(MAX_PENDING_ZONES + 1):
+        requests.received(1, 3, request(zone_id, SQUARE))
+    requests.received(1, 3, request(0, SQUARE + 1))  # an id waiting already is replaced
+    assert len(requests.take()) == MAX_PENDING_ZONES and requests.counts["zones_refused"] == 3
+    assert "waiting already" in requests.reason

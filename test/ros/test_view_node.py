@@ -190,15 +190,24 @@ def test_the_layout_parses_and_names_only_what_the_view_serves() -> None:
     assert named <= served and len(named) == 4
 
 
-def test_a_port_in_use_is_one_line_and_exit_code_2(processes, tmp_path) -> None:
+def test_a_port_in_use_or_an_address_not_here_is_one_line_and_exit_code_2(processes) -> None:
     import socket
+
+    def start(*parameters: str) -> tuple[int, list[str]]:
+        arguments = [arg for parameter in parameters for arg in ("-p", parameter)]
+        done = subprocess.run([sys.executable, "-m", NODES["view_node"], "--ros-args",
+                               *arguments], capture_output=True, text=True, timeout=60,
+                              env=processes.environment())
+        return done.returncode, [line for line in (done.stdout + done.stderr).splitlines()
+                                 if line.strip()]
+
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
-        done = subprocess.run([sys.executable, "-m", NODES["view_node"], "--ros-args", "-p",
-                               f"port:={port}"], capture_output=True, text=True, timeout=60,
-                              env=processes.environment())
-    lines = [line for line in (done.stdout + done.stderr).splitlines() if line.strip()]
-    assert done.returncode == 2 and len(lines) == 1, done.stdout + done.stderr
+        code, lines = start(f"port:={port}")
+    assert code == 2 and len(lines) == 1, lines
     assert f"cannot serve the view on 127.0.0.1:{port}" in lines[0] and "in use" in lines[0]
+    code, lines = start("host:=192.0.2.1", "port:=0")  # TEST-NET-1: no machine has it
+    assert code == 2 and len(lines) == 1, lines
+    assert "cannot serve the view on 192.0.2.1:0" in lines[0]

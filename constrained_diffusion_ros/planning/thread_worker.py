@@ -22,11 +22,12 @@ import torch
 from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult, plan_chunk
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.sampling.sampler import Interrupted
+from constrained_diffusion_ros.zones.newest_job import NewestJobThread
 
 LOGGER = logging.getLogger(__name__)
 
 
-class PlanningThread:
+class PlanningThread(NewestJobThread):
     """A worker thread that plans one chunk at a time, off the control thread.
 
     `submit` replaces any job not yet started (only the newest request matters), and with
@@ -43,6 +44,7 @@ class PlanningThread:
                  plan: Callable[[ConstrainedPlanner, PlanJob, torch.Generator,
                                  Callable[[], bool]], np.ndarray] = plan_chunk) -> None:
         """`plan` plans a job (by default `plan_chunk`; tests slow it or make it fail)."""
+        super().__init__(self._run, name)
         self.planner, self._plan = planner, plan
         self._on_result, self._niceness = on_result, niceness
         self.priority = f"nice {niceness}"  # how the worker thread is scheduled
@@ -50,15 +52,12 @@ class PlanningThread:
         self._job: PlanJob | None = None
         self._seed: int | None = None  # to apply before the next job
         self._busy = False
-        self._stopping = False
-        self._wake = threading.Condition()
         self._cancel = threading.Event()  # the plan in flight is no longer wanted
         self.error: BaseException | None = None  # the last fault
         self.errors = 0  # faults so far
         self.failed = False  # a fault since the last plan offered
         self.restarts = 0  # never: a fault of one plan does not end the thread
         self.cancelled = 0  # plans stopped in flight
-        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
     @property
@@ -87,21 +86,13 @@ class PlanningThread:
             if self._busy:
                 self._cancel.set()
 
-    def shutdown(self, timeout: float = 5.0) -> None:
-        with self._wake:
-            self._stopping = True
-            self._wake.notify()
-        self._thread.join(timeout)
-
     def _run(self) -> None:
         if self._niceness and hasattr(os, "setpriority"):
             with contextlib.suppress(OSError):  # Linux: a thread is a process to setpriority
                 os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), self._niceness)
         while True:
             with self._wake:
-                while self._job is None and not self._stopping:
-                    self._wake.wait()
-                if self._stopping:
+                if not self._wait_for_job():
                     return
                 job, self._job, self._busy = self._job, None, True
                 self._cancel.clear()

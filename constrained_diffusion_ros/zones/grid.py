@@ -15,7 +15,6 @@ build a mask from polygons; `read_pgm` reads a map image as map_server saves it.
 
 from __future__ import annotations
 
-import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, replace
@@ -27,6 +26,7 @@ from numpy.typing import ArrayLike
 
 from constrained_diffusion_ros.zones.area import Bounds
 from constrained_diffusion_ros.zones.geometry import validate_polygon
+from constrained_diffusion_ros.zones.newest_job import NewestJobThread
 
 KEEPOUT = 100  # the value `rasterize` writes in keep-out cells
 DEFAULT_THRESHOLD = 65  # nav2 map_server's occupied_thresh 0.65, in OccupancyGrid percent
@@ -276,7 +276,7 @@ def build_mask(grid: dict, caps: MaskCaps, workspace: Bounds | None, sequence: i
     return replace(built, seconds=time.perf_counter() - started)
 
 
-class MaskBuilder:
+class MaskBuilder(NewestJobThread):
     """Builds keep-out masks on a thread of its own, so that the thread which answers zones and
     observations never waits for one: a fine mask costs a scan and a union that a zone dropped
     meanwhile must not queue behind.
@@ -289,12 +289,10 @@ class MaskBuilder:
 
     def __init__(self, on_built: Callable[[BuiltMask], None], caps: MaskCaps = MaskCaps(),
                  workspace: Bounds | None = None) -> None:
+        super().__init__(self._run, "mask_builder")
         self._on_built, self.caps, self.workspace = on_built, caps, workspace
-        self._wake = threading.Condition()
         self._job: tuple[int, dict, float | None] | None = None
         self._sequence = 0
-        self._stopping = False
-        self._thread = threading.Thread(target=self._run, name="mask_builder", daemon=True)
         self._thread.start()
 
     def submit(self, stamp: float | None = None, **grid: object) -> int:
@@ -310,18 +308,10 @@ class MaskBuilder:
         """The sequence number of the newest mask submitted."""
         return self._sequence
 
-    def shutdown(self, timeout: float = 5.0) -> None:
-        with self._wake:
-            self._stopping = True
-            self._wake.notify()
-        self._thread.join(timeout)
-
     def _run(self) -> None:
         while True:
             with self._wake:
-                while self._job is None and not self._stopping:
-                    self._wake.wait()
-                if self._stopping:
+                if not self._wait_for_job():
                     return
                 (sequence, grid, stamp), self._job = self._job, None
             built = build_mask(grid, self.caps, self.workspace, sequence, stamp)

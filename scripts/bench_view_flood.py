@@ -25,6 +25,7 @@ from websockets.sync.client import connect
 from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_domain_id
 from constrained_diffusion_ros.view.layout import view_channels
 from msg_schemas import NAMESPACE, TOPICS, qos_profile
+from msg_schemas.spin import spin_until
 
 GARBAGE_EVERY = 7  # one request in this many is not JSON (7: every id gets good ones too)
 
@@ -57,14 +58,9 @@ def main(argv: list[str] | None = None) -> int:
                                  s for s in msg.status if s.name.endswith("/view_node")),
                              qos_profile(TOPICS["diagnostics"]))
 
-    def spin(seconds: float, until=lambda: False) -> None:
-        deadline = time.monotonic() + seconds
-        while time.monotonic() < deadline and not until():
-            executor.spin_once(timeout_sec=0.05)
-
     try:
         children.start("view_node", port=port)
-        spin(30.0, lambda: node.count_publishers(TOPICS["zones"].name) >= 1)
+        spin_until(executor, lambda: node.count_publishers(TOPICS["zones"].name) >= 1, 30.0)
         ws = None
         for _ in range(100):
             try:
@@ -88,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
                     json.dumps({"id": zone_id, "polygon": polygon}).encode()
                 ws.send(bytes([1]) + struct.pack("<I", 1) + payload)
             sending = time.monotonic() - started
-            spin(args.settle)
+            spin_until(executor, lambda: False, args.settle)  # what comes meanwhile
         counts = {kv.key: kv.value for kv in statuses[-1].values} if statuses else {}
         print(f"sent {args.requests} zone requests over {args.ids} ids in {sending:.2f} s, "
               f"one in {GARBAGE_EVERY} not JSON")

@@ -43,8 +43,13 @@ TRIAL_TOPICS = {"pusher": "pusher", "block": "block_pose",
 
 def read_messages(bag: str | Path) -> dict[str, list]:
     """Every message of a bag, deserialised, in recording order, per topic."""
+    return by_topic(read_timed_messages(bag))
+
+
+def by_topic(timed: list[tuple[int, str, object]]) -> dict[str, list]:
+    """`read_timed_messages`' messages per topic, in recording order."""
     messages: dict[str, list] = defaultdict(list)
-    for _time_ns, topic, message in read_timed_messages(bag):
+    for _time_ns, topic, message in timed:
         messages[topic].append(message)
     return dict(messages)
 

@@ -24,8 +24,8 @@ import yaml
 
 from constrained_diffusion_ros.cli import ArgumentParser, positive_int, run_command
 from constrained_diffusion_ros.evaluation.bags import (
+    by_topic,
     read_timed_messages,
-    read_trial,
     read_unfinished,
     trial_steps,
 )
@@ -344,14 +344,17 @@ def trial_results(received: dict, scenario, args: argparse.Namespace) -> dict:
 
 def make_figures(output: Path, scenario, args: argparse.Namespace, received: dict) -> None:
     """PNG strip and GIF, drawn from the bag as recorded; from the messages received live if
-    the bag lacks some (said on stderr: the trial's results stand, the bag is incomplete)."""
+    the bag lacks some (said on stderr: the trial's results stand, the bag is incomplete). The
+    view's scene (scene.mcap) from a bag that could be read."""
     import imageio.v3 as iio
 
     from constrained_diffusion_ros.evaluation.report import plot_frames
     from sim_bridge import render_scene
 
+    recorded = None
     try:
-        log = trial_log(read_trial(output / "bag"), args.seed, args.steps)
+        recorded = read_timed_messages(output / "bag")  # read once: figures and scene
+        log = trial_log(trial_steps(by_topic(recorded)), args.seed, args.steps)
     except (RuntimeError, ValueError) as error:  # steps missing, or a bag not closed
         print(f"trial: warning: the bag is incomplete ({error}); figures drawn from the "
               f"messages received live", file=sys.stderr)
@@ -363,13 +366,10 @@ def make_figures(output: Path, scenario, args: argparse.Namespace, received: dic
                            setpoint=log.commanded[0, min(t, args.steps - 1)])
               for t in range(0, args.steps + 1, 2)]
     iio.imwrite(output / "trial.gif", np.stack(frames), duration=100, loop=0)
-    try:  # the live view's scene, for the Foxglove app
+    if recorded is not None:  # the live view's scene, for the Foxglove app
         inflating = {name for name, config in
                      load_configurations(args.configurations_file).items() if config.inflate}
-        write_scene(read_timed_messages(output / "bag"), output / "scene.mcap", inflating,
-                    PUSHT_ROBOT.pusher_radius)
-    except ValueError as error:  # a bag not closed: said above already
-        print(f"trial: warning: no scene.mcap ({error})", file=sys.stderr)
+        write_scene(recorded, output / "scene.mcap", inflating, PUSHT_ROBOT.pusher_radius)
 
 
 TRIAL_FAILED = 1  # the nodes failed or timed out: not a bad argument

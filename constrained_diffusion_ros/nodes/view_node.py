@@ -97,7 +97,7 @@ class _Listener(foxglove.ServerListener):
 class ViewNode(Node):
     def __init__(self) -> None:
         super().__init__("view_node", namespace=NAMESPACE)
-        self.values = values = declare(self, PARAMETERS)
+        values = declare(self, PARAMETERS)
         torch.set_num_threads(1)  # zone checks only: the cores are the policy's
         prefix = self.get_namespace().rstrip("/")
         channels = view_channels(prefix)
@@ -166,7 +166,7 @@ class ViewNode(Node):
                 before = self.state.policy_refusal
                 take_policy_status(self.state, status.message,
                                    {kv.key: kv.value for kv in status.values},
-                                   self.inflating, PUSHT_ROBOT.pusher_radius)
+                                   self.inflating)
                 if self.state.policy_refusal != before:
                     self._show_refusal(self.state.policy_refusal)
                 self._dirty = True

@@ -53,5 +53,5 @@ def write_scene(messages: Iterable[tuple[int, str, object]], output: Path,
                     if status.name == policy:
                         take_policy_status(state, status.message,
                                            {kv.key: kv.value for kv in status.values},
-                                           inflating, pusher_radius)
+                                           inflating)
     return frames

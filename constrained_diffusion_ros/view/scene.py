@@ -8,6 +8,7 @@ The scene is a pure function of `SceneState`, so it can be tested and replayed w
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -80,10 +81,11 @@ FILTER_STATES = (("no_free_space", "no free space"), ("holding", "held"),
 
 
 def take_policy_status(state: SceneState, message: str, values: dict[str, str],
-                       inflating: set[str], pusher_radius: float) -> None:
+                       inflating: set[str]) -> None:
     """The policy node's /diagnostics into the scene: its message, the filter's state, whether
-    its configuration (one of `inflating`) grows the zones, and its last zone refusal."""
-    state.inflate_px = pusher_radius if values.get("configuration") in inflating else 0.0
+    its configuration (one of `inflating`) grows the zones (by the pusher's radius), and its
+    last zone refusal."""
+    state.inflate_px = state.pusher_radius if values.get("configuration") in inflating else 0.0
     state.filter_state = ", ".join(name for key, name in FILTER_STATES
                                    if values.get(key) == "True")
     state.policy_status = one_line(message, 120)
@@ -109,10 +111,12 @@ def scene_update(state: SceneState, stamp_ns: int = 0) -> SceneUpdate:
                 _entity("goal", stamp, lines=[_outline(p, GOAL, 2.0, 1)
                                               for p in tee_polygons(GOAL_POSE)])]
     if state.block_pose is not None:
-        parts = tee_polygons(state.block_pose)
+        parts = [shapely.Polygon(part) for part in tee_polygons(state.block_pose)]
         entities.append(_entity("block", stamp, triangles=[_fill(parts, BLOCK, 2)]))
     for zone_id, outline in sorted(state.zones.items()):
-        entities.append(_zone(zone_id, outline, state.inflate_px, stamp))
+        drawing = _zone_drawing(zone_id, np.asarray(outline, dtype=float).tobytes(),
+                                state.inflate_px)
+        entities.append(_entity(f"zone/{zone_id}", stamp, **drawing))
     if state.plan is not None and len(state.plan):
         entities.append(_entity("plan", stamp, lines=[_strip(state.plan, PLAN, 1.5, 5)],
                                 spheres=[_sphere(p, 4.0, PLAN, 5) for p in state.plan]))
@@ -137,7 +141,12 @@ def triangles(polygon: shapely.Geometry) -> np.ndarray:
 
 # -- entities ---------------------------------------------------------------------------------
 
-def _zone(zone_id: str, outline: np.ndarray, inflate_px: float, stamp: Timestamp) -> SceneEntity:
+@functools.lru_cache(maxsize=1024)
+def _zone_drawing(zone_id: str, outline_bytes: bytes, inflate_px: float) -> dict[str, list]:
+    """A zone's primitives, kept while its outline and the inflation stay the same: zones
+    change far less often than frames are drawn, and the triangulation and the grown outline
+    are most of a frame's work."""
+    outline = np.frombuffer(outline_bytes).reshape(-1, 2)
     polygon = shapely.make_valid(shapely.Polygon(outline))
     lines = [_outline(outline, ZONE_EDGE, 2.0, 3)]
     if inflate_px > 0:  # where the pusher's centre may not go: the planner's grown zone
@@ -147,8 +156,7 @@ def _zone(zone_id: str, outline: np.ndarray, inflate_px: float, stamp: Timestamp
     top = outline[np.argmin(outline[:, 1])]
     label = TextPrimitive(pose=_pose(top - (0.0, 10.0), 7), billboard=True, font_size=14,
                           scale_invariant=True, color=ZONE_EDGE, text=f"zone {zone_id}")
-    return _entity(f"zone/{zone_id}", stamp, lines=lines, texts=[label],
-                   triangles=[_fill([polygon], ZONE, 3)])
+    return {"lines": lines, "texts": [label], "triangles": [_fill([polygon], ZONE, 3)]}
 
 
 def _status_texts(state: SceneState) -> list[TextPrimitive]:
@@ -194,9 +202,8 @@ def _segments(pairs: np.ndarray, color: Color, thickness: float) -> LinePrimitiv
                          pose=_pose((0, 0), 0))
 
 
-def _fill(polygons, color: Color, layer: int) -> TriangleListPrimitive:
-    pieces = [triangles(p if isinstance(p, shapely.Geometry) else shapely.Polygon(p))
-              for p in polygons]
+def _fill(polygons: list[shapely.Geometry], color: Color, layer: int) -> TriangleListPrimitive:
+    pieces = [triangles(polygon) for polygon in polygons]
     return TriangleListPrimitive(points=_points(np.concatenate(pieces).reshape(-1, 2), layer),
                                  color=color, pose=_pose((0, 0), 0))
 

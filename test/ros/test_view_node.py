@@ -147,16 +147,18 @@ def test_the_view_shows_the_pusher_and_takes_zones_the_policy_obeys_or_refuses(r
     assert {"workspace", "goal", "block", "pusher", "setpoint", "status"} <= \
         {e.id for e in frame.entities}
 
-    # A zone from the app: on the zones topic, in force in the policy, obeyed.
+    # A zone from the app, on the setpoint in force: on the zones topic, in force in the
+    # policy, obeyed (every setpoint after it outside the zone grown by the pusher's radius).
     requests = client.advertise(channels["zone_requests"], "constrained_diffusion_ros/ZoneRequest")
-    x, y = pushers[-1].point.x, pushers[-1].point.y
-    cx, cy = float(np.clip(x + 60, 60, 450)), float(np.clip(y, 60, 450))
-    square = [[cx - 25, cy - 25], [cx + 25, cy - 25], [cx + 25, cy + 25], [cx - 25, cy + 25]]
+    assert ros.spin_until(lambda: bool(setpoints), 15.0)
+    cx, cy = setpoints[-1].tolist()
+    square = [[cx - 15, cy - 15], [cx + 15, cy - 15], [cx + 15, cy + 15], [cx - 15, cy + 15]]
+    grown = shapely.Polygon(square).buffer(AGENT_RADIUS - 0.5)
+    assert grown.contains(shapely.Point(*setpoints[-1]))  # the setpoint had to change
     client.publish(requests, json.dumps({"id": 42, "polygon": square}).encode())
     assert ros.spin_until(lambda: markers and "42" in zone_outlines_of(markers[-1]), 15.0)
     first = len(setpoints)
     assert ros.spin_until(lambda: len(setpoints) >= first + 20, 15.0)
-    grown = shapely.Polygon(square).buffer(AGENT_RADIUS - 1e-3)
     assert not any(grown.contains(shapely.Point(*p)) for p in setpoints[first:])
     client.pump(0.5)
     zone = entity(client.latest[scene][1], "zone/42")

@@ -91,11 +91,11 @@ def test_the_policy_status_sets_the_filter_state_inflation_and_a_new_refusal() -
     state = SceneState()
     values = {"configuration": "safe", "holding": "False", "shielded": "True",
               "no_free_space": "False", "zone_refusal": "zone 3: cap"}
-    take_policy_status(state, "running", values, {"safe"}, 15.0)
+    take_policy_status(state, "running", values, {"safe"})
     assert (state.filter_state, state.inflate_px, state.refusal) == ("shielded", 15.0,
                                                                      "zone 3: cap")
     state.refusal = "zone 4: the view's own, newer"
-    take_policy_status(state, "running", values, set(), 15.0)  # the same refusal: not news
+    take_policy_status(state, "running", values, set())  # the same refusal: not news
     assert state.refusal == "zone 4: the view's own, newer" and state.inflate_px == 0.0
 
 

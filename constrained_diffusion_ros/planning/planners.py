@@ -29,6 +29,7 @@ from constrained_diffusion_ros.sampling.hooks import (
     OnRows,
     PathRepair,
     Resampling,
+    ResamplingThenPush,
     ShrinkingMargin,
     Until,
 )
@@ -103,9 +104,11 @@ class ConstrainedPlanner:
     def hooks(self, area: RestrictedArea, pusher: Tensor) -> list[SampleHook]:
         c, first = self.config, self.policy.config.first_executed
         guidance: list[SampleHook] = []
-        if c.resample:
+        if c.resample and c.push > 0:
+            guidance.append(ResamplingThenPush(area, c.push))
+        elif c.resample:
             guidance.append(Resampling(area))
-        if c.push > 0:
+        elif c.push > 0:
             guidance.append(GradientPush(area, c.push))
         if c.margin_shrink > 0:
             guidance = [ShrinkingMargin(g, c.margin_shrink) for g in guidance]

@@ -12,8 +12,6 @@ from constrained_diffusion_ros.policy.normalizer import MinMaxNormalizer
 from constrained_diffusion_ros.policy.schedulers import make_scheduler
 from constrained_diffusion_ros.policy.unet import ConditionalUnet1D
 
-FILM_ROWS = 4096  # (steps x batch) FiLM rows a plan computes at once at most (60 MB at 3584)
-
 
 class DiffusionPolicy(nn.Module):
     """Predicts action chunks from an observation history by denoising (epsilon prediction)."""
@@ -37,6 +35,9 @@ class DiffusionPolicy(nn.Module):
         # Where the network runs at inference when not in torch (runtime.py's `use_runtime`):
         # (sample, one step's FiLM outputs) -> noise, as `unet.forward_filmed`; None: torch.
         self.fast: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None
+        # The FiLM's step part for one schedule and its weights on the condition, kept for a
+        # fast runtime (`denoiser`).
+        self._films: tuple[object, bytes, torch.Tensor, torch.Tensor] | None = None
 
     @property
     def device(self) -> torch.device:
@@ -46,16 +47,21 @@ class DiffusionPolicy(nn.Module):
     def denoiser(self, timesteps: torch.Tensor, cond: torch.Tensor
                  ) -> Callable[[torch.Tensor, int], torch.Tensor]:
         """The network for one plan, at inference: (sample, index into `timesteps`) -> the
-        predicted noise. On a fast runtime the FiLM outputs, which depend only on the step and
-        `cond`, are computed once for all the plan's steps (up to FILM_ROWS rows at once)."""
+        predicted noise. On a fast runtime the FiLM outputs are the step's part, computed once
+        per schedule and kept while the runtime is (its weights are frozen there too), plus
+        the condition's, computed once per plan (`ConditionalUnet1D.step_films`)."""
         if self.fast is None:
             return lambda sample, index: self.unet(sample, timesteps[index], cond)
-        fast = self.fast
-        if len(timesteps) * len(cond) <= FILM_ROWS:
-            films = self.unet.films(timesteps, cond)
-            return lambda sample, index: fast(sample, films[index])
-        return lambda sample, index: fast(sample, self.unet.films(timesteps[index:index + 1],
-                                                                  cond)[0])
+        fast, schedule = self.fast, timesteps.cpu().numpy().tobytes()
+        kept = self._films
+        if kept is None or kept[0] is not fast or kept[1] != schedule:  # one schedule kept
+            kept = self._films = (fast, schedule, self.unet.step_films(timesteps),
+                                  self.unet.condition_film_weight())
+        steps, conditions = kept[2], self.unet.condition_films(cond, kept[3])
+        return lambda sample, index: fast(sample, steps[index] + conditions)
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_films": None}  # a planning process makes its own
 
     def condition(self, obs_history: torch.Tensor) -> torch.Tensor:
         """(B, n_obs_steps, obs_dim) raw observations -> (B, global_cond_dim) network condition."""

@@ -4,11 +4,11 @@ A robot plans one chunk at a time, and at batch 1 a forward of the U-Net in torc
 is mostly the overhead of dispatching its few hundred small operations. ONNX Runtime runs the
 same network, exported from the loaded weights, with much less of it, and without what depends
 only on the step and the observation (the FiLM scales and biases of every block, a third of the
-weights): those are computed once per plan for all its steps (`DiffusionPolicy.denoiser`;
-`scripts/bench_planning.py` measures both). The graph is exported at load, in memory, and
-checked against torch on probe inputs before it is used: a runtime that is missing, cannot run
-the network, or disagrees with torch by more than TOLERANCE is not used, and one log line says
-why (never silently).
+weights): their part from the step is computed once per schedule and their part from the
+observation once per plan (`DiffusionPolicy.denoiser`; `scripts/bench_planning.py` measures
+both). The graph is exported at load, in memory, and checked against torch on probe inputs
+before it is used: a runtime that is missing, cannot run the network, or disagrees with torch
+by more than TOLERANCE is not used, and one log line says why (never silently).
 
 The graph is kept in a cache between starts (`cached_graph`), keyed by the weights and the
 exporter, and checked like a fresh one. It travels with the policy (a planning process gets it

@@ -99,15 +99,35 @@ class ConditionalUnet1D(nn.Module):
 
     def films(self, steps: torch.Tensor, global_cond: torch.Tensor) -> torch.Tensor:
         """(T,) steps and (B, global_cond_dim) conditions -> (T, B, F): every residual block's
-        FiLM scale and bias for each step, concatenated in `blocks` order. For one plan they
-        depend only on the step, so a runtime computes them once for all its steps (one matrix
-        product instead of a matrix-vector product per block per step) and runs
-        `forward_filmed` at each."""
+        FiLM scale and bias for each step, concatenated in `blocks` order: the sum of
+        `step_films` and `condition_films`."""
+        return self.step_films(steps)[:, None] + self.condition_films(global_cond)[None]
+
+    def step_films(self, steps: torch.Tensor) -> torch.Tensor:
+        """(T,) steps -> (T, F): the part of every block's FiLM output that comes from the
+        step, with the biases. A block's FiLM is Linear(Mish([step embedding, condition])), and
+        Mish acts on each value, so it splits into a part from the step and one from the
+        condition: a runtime computes this part once per schedule and only the condition's
+        (`condition_films`) per plan, then runs `forward_filmed` at each step."""
+        linears = [block.film[-1] for block in self.blocks()]
+        width = self.step_encoder[-1].out_features
+        weight = torch.cat([linear.weight[:, :width] for linear in linears])
+        bias = torch.cat([linear.bias for linear in linears])
         embedded = self.step_encoder(steps.reshape(-1))
-        count, batch = embedded.shape[0], global_cond.shape[0]
-        cond = torch.cat([embedded[:, None].expand(count, batch, -1),
-                          global_cond[None].expand(count, batch, -1)], dim=-1)
-        return torch.cat([block.film(cond) for block in self.blocks()], dim=-1)
+        return torch.nn.functional.linear(torch.nn.functional.mish(embedded), weight, bias)
+
+    def condition_films(self, global_cond: torch.Tensor,
+                        weight: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, global_cond_dim) -> (B, F): the condition's part of every block's FiLM output
+        (see `step_films`); `weight`: `condition_film_weight()`, if kept."""
+        if weight is None:
+            weight = self.condition_film_weight()
+        return torch.nn.functional.linear(torch.nn.functional.mish(global_cond), weight)
+
+    def condition_film_weight(self) -> torch.Tensor:
+        """(F, global_cond_dim) the blocks' FiLM weights on the condition, concatenated."""
+        width = self.step_encoder[-1].out_features
+        return torch.cat([block.film[-1].weight[:, width:] for block in self.blocks()])
 
     def forward_filmed(self, sample: torch.Tensor, film: torch.Tensor) -> torch.Tensor:
         """The noise predicted for `sample` given one step's `films` (B, F): each block takes

@@ -33,8 +33,11 @@ class Resampling:
 
     def __call__(self, sample: Tensor, step: DenoisingStep) -> Tensor:
         inside = self.area.contains(sample)
-        if not inside.any():
-            return sample
+        return self.blend(sample, inside, step) if inside.any() else sample
+
+    @staticmethod
+    def blend(sample: Tensor, inside: Tensor, step: DenoisingStep) -> Tensor:
+        """The waypoints `inside` blended with fresh draws."""
         weight = 1.0 - step.progress
         fresh = step.normalizer.unnormalize(torch.randn(sample.shape, generator=step.generator))
         blended = weight * fresh + (1.0 - weight) * sample
@@ -49,11 +52,27 @@ class GradientPush:
     step_size: float
 
     def __call__(self, sample: Tensor, step: DenoisingStep) -> Tensor:
+        inside, outward = self.area.inside_and_outward(sample)
+        if outward is None:
+            return sample
+        return torch.where(inside[..., None], sample + self.step_size * outward, sample)
+
+
+@dataclass
+class ResamplingThenPush:
+    """`Resampling` and then `GradientPush` on one area, as the two hooks in turn would act,
+    with one zone query fewer where no waypoint is inside: resampling leaves the sample as it
+    was, so the push would find none inside either."""
+
+    area: RestrictedArea
+    step_size: float
+
+    def __call__(self, sample: Tensor, step: DenoisingStep) -> Tensor:
         inside = self.area.contains(sample)
         if not inside.any():
             return sample
-        push = self.step_size * self.area.outward_direction(sample)
-        return torch.where(inside[..., None], sample + push, sample)
+        resampled = Resampling.blend(sample, inside, step)
+        return GradientPush(self.area, self.step_size)(resampled, step)
 
 
 @dataclass
@@ -172,7 +191,7 @@ class ShrinkingMargin:
     further out, the final ones only as far as needed. Whole pixels, so a loop builds at most
     `extra` + 1 derived areas, each cached by the area."""
 
-    hook: Resampling | GradientPush
+    hook: Resampling | GradientPush | ResamplingThenPush
     extra: float
 
     def __call__(self, sample: Tensor, step: DenoisingStep) -> Tensor:

@@ -104,16 +104,16 @@ class DenoisingSampler:
         sample = torch.randn(shape, generator=generator).to(device)
         timesteps = self.scheduler.timesteps
         network = self.policy.denoiser(timesteps.to(device), cond)
-        for index, timestep in enumerate(timesteps):
+        levels = [*timesteps.tolist(), None]  # after update i the sample is at level i + 1
+        for index in range(len(timesteps)):
             if self._interrupt is not None and self._interrupt():
                 raise Interrupted(f"stopped before denoising step {index + 1} of "
                                   f"{len(timesteps)}")
             noise = network(sample, index)
             sample = self.updates.apply(index, noise, sample, generator)
             if hooks:
-                last = index == len(timesteps) - 1
-                step = DenoisingStep(index, len(timesteps), int(timestep), generator, normalizer,
-                                     None if last else int(timesteps[index + 1]), self.scheduler)
+                step = DenoisingStep(index, len(timesteps), levels[index], generator, normalizer,
+                                     levels[index + 1], self.scheduler)
                 workspace = normalizer.unnormalize(sample.cpu())
                 for hook in hooks:
                     workspace = hook(workspace, step)

@@ -57,6 +57,12 @@ class RestrictedArea(ABC):
         unit = gradient / gradient.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         return unit.to(_float_dtype(points))
 
+    def inside_and_outward(self, points: Tensor) -> tuple[Tensor, Tensor | None]:
+        """`contains(points)`, and `outward_direction(points)` where a point is inside (else
+        None): what a push out needs, in one query where an area can answer both at once."""
+        inside = self.contains(points)
+        return inside, (self.outward_direction(points) if inside.any() else None)
+
     def project_out(self, points: Tensor, margin: float = 0.0) -> Tensor:
         """(..., 2): points with clearance below `margin` moved out to `margin`; others kept.
 

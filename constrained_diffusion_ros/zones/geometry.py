@@ -332,6 +332,13 @@ class ZoneSet(RestrictedArea):
             return torch.zeros_like(p).to(dtype)
         return self._query(p)[1].to(dtype)
 
+    def inside_and_outward(self, points: Tensor) -> tuple[Tensor, Tensor | None]:
+        p, dtype = self._prepare(points)
+        if self.is_empty:
+            return torch.zeros(p.shape[:-1], dtype=torch.bool, device=p.device), None
+        inside = self._inside(p)
+        return inside, (self._query(p, inside)[1].to(dtype) if inside.any() else None)
+
     def project_out(self, points: Tensor, margin: float = 0.0, passes: int = 2) -> Tensor:
         """Move points inside, or less than `margin` outside, to clearance `margin`; keep others.
 
@@ -455,13 +462,15 @@ class ZoneSet(RestrictedArea):
         # else project_out(margin=0) would leave it where `contains` still sees it.
         return torch.where(self._inside(p), -dist.clamp_min(torch.finfo(dist.dtype).tiny), dist)
 
-    def _query(self, p: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def _query(self, p: Tensor, inside: Tensor | None = None
+               ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """For a non-empty set: signed distance (...), outward unit direction (..., 2), nearest
         boundary point (..., 2), and the step (..., 2) whose multiple c from that point gives
-        clearance c (the unit direction, or a vertex's clearance step at notch tips)."""
+        clearance c (the unit direction, or a vertex's clearance step at notch tips).
+        `inside`: `_inside(p)`, where the caller has it."""
         dist, away, idx, t = self._nearest(p)
         _, _, normal, start_step, end_step, _ = self._edge_tensors(p.device, p.dtype)
-        inside = self._inside(p)
+        inside = self._inside(p) if inside is None else inside
         at_vertex = ((t <= 0) | (t >= 1))[..., None]
         vertex_step = torch.where((t <= 0)[..., None], start_step[idx], end_step[idx])
         tol = 1024 * torch.finfo(p.dtype).eps * self._scale  # below this, `away` is mostly noise

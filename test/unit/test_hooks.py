@@ -15,6 +15,7 @@ from constrained_diffusion_ros.sampling.hooks import (
     GradientPush,
     PathRepair,
     Resampling,
+    ResamplingThenPush,
     ShrinkingMargin,
     Until,
 )
@@ -95,6 +96,32 @@ def test_gradient_push_in_a_concave_zone_heads_for_the_nearest_boundary() -> Non
     torch.testing.assert_close(out - points, expected)
     # A push that heads for the centroid of the L (about (208, 213)) would go the other way.
     assert (out[0] - points[0] > 0).all()
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), index=st.integers(0, 4), spread=st.floats(20.0, 300.0))
+def test_resampling_then_push_is_the_two_hooks_in_turn_bit_for_bit(seed: int, index: int,
+                                                                   spread: float) -> None:
+    """The fused hook the planner uses where a configuration has both gives exactly what the
+    two give in turn, the same noise drawn, whether or not a waypoint is inside."""
+    generator = torch.Generator().manual_seed(seed)
+    sample = 150.0 + spread * (torch.rand(2, 6, 2, generator=generator) - 0.5)
+    for area in (SQUARE, L_SHAPE):
+        step = make_step(index, seed=seed)  # one generator for both, as the sampler passes it
+        apart = GradientPush(area, 10.0)(Resampling(area)(sample.clone(), step), step)
+        together = ResamplingThenPush(area, 10.0)(sample.clone(), make_step(index, seed=seed))
+        assert torch.equal(apart, together)
+
+
+def test_inside_and_outward_is_contains_and_outward_direction() -> None:
+    """A zone set answers both in one query; its answer is the two queries'."""
+    points = torch.tensor([[[105.0, 150.0], [150.0, 196.0], [50.0, 150.0], [250.0, 180.0]]])
+    for area in (SQUARE, L_SHAPE):
+        inside, outward = area.inside_and_outward(points)
+        assert torch.equal(inside, area.contains(points))
+        assert torch.equal(outward, area.outward_direction(points))
+    inside, outward = SQUARE.inside_and_outward(torch.tensor([[50.0, 50.0]]))
+    assert not inside.any() and outward is None  # nothing inside: no directions computed
 
 
 # -- Final projection ----------------------------------------------------------------------------

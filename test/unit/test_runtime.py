@@ -27,8 +27,9 @@ def shipped() -> DiffusionPolicy:
 def test_every_forward_of_a_body_safe_plan_agrees_with_torch(
         shipped: DiffusionPolicy, monkeypatch: pytest.MonkeyPatch) -> None:
     """A DDIM 10 plan with the body-safe hooks, at batch 1 and 4: at each denoising step the
-    ONNX Runtime forward (its FiLM computed for the whole plan at once) equals torch's own
-    forward on the same input to TOLERANCE."""
+    ONNX Runtime forward (its FiLM's step part computed once for the schedule, its
+    condition's part once per plan) equals torch's own forward on the same input to
+    TOLERANCE."""
     assert runtime.use_runtime(shipped, "onnxruntime") == "onnxruntime"
     fast_denoiser, worst, calls = shipped.denoiser, [0.0], [0]
 
@@ -59,6 +60,21 @@ def test_every_forward_of_a_body_safe_plan_agrees_with_torch(
         runtime.use_runtime(shipped, "torch")
     assert calls[0] >= 20  # every forward of both plans went through the check
     assert worst[0] <= runtime.TOLERANCE
+
+
+def test_the_film_outputs_split_into_the_steps_part_and_the_conditions(
+        shipped: DiffusionPolicy) -> None:
+    """Each block's FiLM output, Linear(Mish([step embedding, condition])), equals the sum of
+    the step's part and the condition's, for every step and row."""
+    unet, steps = shipped.unet, torch.tensor([99, 50, 3])
+    cond = torch.rand(2, shipped.config.global_cond_dim) * 2 - 1
+    with torch.no_grad():
+        split = unet.step_films(steps)[:, None] + unet.condition_films(cond)[None]
+        embedded = unet.step_encoder(steps)
+        whole = torch.cat([embedded[:, None].expand(3, 2, -1), cond[None].expand(3, 2, -1)], -1)
+        expected = torch.cat([block.film(whole) for block in unet.blocks()], dim=-1)
+    assert split.shape == expected.shape == (3, 2, expected.shape[-1])
+    assert float((split - expected).abs().max()) <= 1e-5
 
 
 def test_the_graph_travels_with_the_policy_and_opens_again(shipped: DiffusionPolicy) -> None:

@@ -20,7 +20,9 @@ the policy run, drop a square zone on the waypoints the plan in force is about t
   - standstills at a zone's edge, as the node counts them: with a waypoint to execute (the
     filter's: `standstill_steps`, the longest) and while waiting for a plan
     (`standstill_waiting_steps`);
-  - the time from publishing a zone to the next plan the client receives;
+  - the time from publishing a zone to the next plan the client receives, and, as the node
+    counts it (`replan_latency_ms`), from its zone callback to the first plan installed that
+    was planned with the zone;
 then a 1 kHz zone flood (zones in force = last message per id how soon after it ends; the period
 p99 against the same run without a flood), and `trial` under load. "loaded" means one busy
 process per `--load` core, started and stopped by this script. Prints; asserts nothing.
@@ -136,6 +138,9 @@ class Condition:
     reacted_delivered: list[float] = field(default_factory=list)
     in_node: list[float] = field(default_factory=list)  # s, the node's zone_to_setpoint_ms
     replans: list[float] = field(default_factory=list)  # s, zone published -> next plan received
+    # s, the node's replan_latency_ms: its zone callback -> the first plan installed that was
+    # planned with the zone (inf: none within the watch)
+    knowing: list[float] = field(default_factory=list)
     # s, every setpoint: the client's callback after its middleware received it (what this
     # client's own executor adds to "received")
     callback_delays: list[float] = field(default_factory=list)
@@ -391,6 +396,8 @@ def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
     result.trials += 1
     result.replans.append(next((t for t in client.plan_times if t > published), float("inf"))
                           - published)
+    knowing = float(client.status.get("replan_latency_ms", "nan")) / 1000
+    result.knowing.append(knowing if np.isfinite(knowing) else float("inf"))
     latency = float("inf") if first is None else first - published
     result.latencies.append(latency)
     if reacted:
@@ -552,8 +559,9 @@ def report(name: str, result: Condition, nominal: float) -> None:
           f"{ms(np.array(result.reacted_sent))}; to when the client's middleware received it "
           f"(its reception timestamp): {ms(np.array(result.reacted_delivered))}; inside the "
           f"node (zone callback -> sent): {ms(np.array(result.in_node))}")
-    print(f"    zone published -> the next plan received (every trial; a replan if the rest "
-          f"of the chunk entered the zone): {ms(np.array(result.replans))}")
+    print(f"    zone published -> the next plan received (every trial): "
+          f"{ms(np.array(result.replans))}; in the node, zone callback -> the first plan "
+          f"installed that knows the zone: {ms(np.array(result.knowing))}")
     print(f"    the client's own executor: its callback after its middleware had a setpoint "
           f"(every setpoint): {ms(np.array(result.callback_delays))}")
     print(f"    setpoints within the pusher radius of the zone after that (0.5 px tolerance): "

@@ -138,7 +138,8 @@ class PolicyNode(Node):
             values["planning_idle"], seed, lead=None if lead < 0 else lead,
             soft=values["prefix_soft"], rate_hz=self.rate_hz,
             wake=self.create_guard_condition(self._on_plan_ready).trigger,
-            every_tick=values["replan_every_tick"])
+            every_tick=values["replan_every_tick"],
+            replan_on_zone_change=values["replan_on_zone_change"])
 
     def _on_parameters(self, parameters) -> SetParametersResult:
         for parameter in parameters:
@@ -207,7 +208,7 @@ class PolicyNode(Node):
             self._after_plan()
 
     def _after_plan(self) -> None:
-        self.reaction.plan_installed()
+        self.reaction.plan_installed(self.loop.knows_zones())
         self.plan_pub.publish(path_message(self.loop.chunk, self.get_clock().now().to_msg()))
 
     # -- zones --------------------------------------------------------------------------------

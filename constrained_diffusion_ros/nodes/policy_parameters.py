@@ -44,6 +44,10 @@ PARAMETERS = (
           "finds none on its way (the waypoints due before it arrives held fixed), not only "
           "lead steps before the chunk runs out; planning then runs all the time",
           read_only=True),
+    Param("replan_on_zone_change", True, "realtime: ask for a new plan at every change of "
+          "the zones, so that a plan that knows them follows within one planning time; false: "
+          "only when they refuse the setpoint held or lie on the rest of the chunk",
+          read_only=True),
     Param("prefix_soft", 4, "realtime: waypoints after the committed ones drawn toward the "
           "chunk in force; -1: no inpainting", read_only=True, low=-1),
     Param("executor_priority", EXECUTOR_PRIORITY, "realtime: SCHED_FIFO priority of the "

@@ -70,7 +70,8 @@ class StatusReporter:
 
 class ReactionTimes:
     """How fast the node answered its last zone change: the safe setpoint sent (from the zone
-    message's arrival) and the first plan installed after it."""
+    message's arrival) and the first plan installed that was planned with it (NaN until one
+    is)."""
 
     def __init__(self) -> None:
         self.zone_changed_at: float | None = None
@@ -78,6 +79,7 @@ class ReactionTimes:
 
     def zone_changed(self) -> None:
         self.zone_changed_at = time.monotonic()
+        self.replan_latency_ms = float("nan")
 
     def safe_setpoint_sent(self, received: float, sent: float | None) -> None:
         """The safe setpoint for a zone message that came at `received` went out at `sent`
@@ -85,8 +87,9 @@ class ReactionTimes:
         if sent is not None:
             self.zone_to_setpoint_ms = 1000 * (sent - received)
 
-    def plan_installed(self) -> None:
-        if self.zone_changed_at is not None:
+    def plan_installed(self, knows_zones: bool) -> None:
+        """A plan was installed; `knows_zones`: planned with the zones in force."""
+        if self.zone_changed_at is not None and knows_zones:
             self.replan_latency_ms = 1000 * (time.monotonic() - self.zone_changed_at)
             self.zone_changed_at = None
 

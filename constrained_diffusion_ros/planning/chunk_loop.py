@@ -11,9 +11,13 @@ the background and deliver whenever the plan is done. Whatever the worker, the r
 - a row whose zones changed since its plan, and whose rest of the chunk now lies where the
   planner keeps waypoints out of, asks for a new plan at once and stops the one in flight
   (unless that one is such a replan already); so does a live zone that moves the setpoint held;
+  with `replan_on_zone_change` (live), so does every change of the zones, so that a plan that
+  knows them follows any zone within one planning time;
 - a plan is installed when it arrives, the waypoints whose time has passed skipped
   (action_queue.py); it is dropped if it is another episode's or configuration's, or if it was
-  planned before zones that it enters (and asked for again);
+  planned before zones that it enters (and asked for again); with `replan_on_zone_change` it
+  is installed even then (guarded as the chunk in force is, below), so the robot is not left
+  without waypoints while the plan that knows the zones is made;
 - a row without a waypoint holds its last setpoint;
 - every setpoint passes the guard against the zones in force: a waypoint planned before them
   that they now refuse is moved out of them first (`keep_out`), then the planner's guard (the
@@ -109,7 +113,8 @@ class ChunkLoop:
     for a new plan at every observation that finds none on its way, from that observation,
     with the waypoints that will execute before it arrives (`delay` steps, or the measured
     planning time) held fixed: a zone is planned around as soon as planning allows, not at the
-    next chunk.
+    next chunk. `replan_on_zone_change`: any change of the zones asks for a plan that knows
+    them (the module's rules).
 
     Call everything from one thread; a background worker's results wait until
     `install_results` (or the next `observe`) takes them, and `wake` is called when one arrives.
@@ -120,7 +125,7 @@ class ChunkLoop:
                  lead: int | None = None, soft: int = 4, rate_hz: float = 10.0,
                  noise_seed: int | None = None,
                  wake: Callable[[], None] = lambda: None, every_tick: bool = False,
-                 delay: int | None = None) -> None:
+                 delay: int | None = None, replan_on_zone_change: bool = False) -> None:
         if handover not in HANDOVERS:
             raise ValueError(f"handover must be one of {HANDOVERS}, got {handover!r}")
         config = planner.policy_config
@@ -131,6 +136,7 @@ class ChunkLoop:
             raise ValueError("every_tick needs an asynchronous handover")
         self.fixed_lead = 0 if handover == "sync" else lead
         self.every_tick, self.fixed_delay = every_tick, delay
+        self.replan_on_zone_change = replan_on_zone_change
         self.soft, self.rate_hz, self.noise_seed, self.wake = soft, rate_hz, noise_seed, wake
         self.n_obs_steps, self.first_executed = config.n_obs_steps, config.first_executed
         self.n_action_steps = config.n_action_steps
@@ -168,7 +174,8 @@ class ChunkLoop:
         """The loop on the wall clock, as the policy node runs it live: plans made in a child
         process with `process_threads` torch threads, at idle priority if `idle`
         (`PlanningProcess`), or with None in a thread of this process (`PlanningThread`);
-        `options` are the loop's (lead, soft, rate_hz, wake, every_tick)."""
+        `options` are the loop's (lead, soft, rate_hz, wake, every_tick,
+        replan_on_zone_change)."""
         def make_worker(planner: ChunkPlanner, on_result: Callable[[PlanResult], None]
                         ) -> PlanWorker:
             if process_threads is None:
@@ -258,12 +265,15 @@ class ChunkLoop:
 
     @property
     def lead(self) -> int:
-        """Steps before the chunk runs out at which the next plan is asked for."""
+        """Steps before the chunk runs out at which the next plan is asked for; measured: room
+        for two planning times and a step, so that a plan a zone stops just before its end and
+        asks again still comes before the chunk runs out."""
         if self.every_tick:
             return self.n_action_steps
         if self.fixed_lead is not None:
             return self.fixed_lead
-        return int(min(self.n_action_steps, self.delay_steps + 1))
+        twice = max(1, int(np.ceil(2 * self.plan_seconds * self.rate_hz)))
+        return int(min(self.n_action_steps, twice + 1))
 
     @property
     def delay_steps(self) -> int:
@@ -277,6 +287,12 @@ class ChunkLoop:
     def chunk(self) -> np.ndarray:
         """(N, 2) the waypoints of the first row's chunk in force (NaN before the first)."""
         return self.queue.waypoints[0]
+
+    def knows_zones(self) -> bool:
+        """Whether the first row's chunk in force was planned with the zones in force."""
+        if self.history is None:
+            return False
+        return bool(self._zones_now()[1][0] == self.planned_version[0])
 
     def status(self) -> dict[str, object]:
         """The loop's and its worker's counters, for diagnostics (`planning_error`: the
@@ -350,6 +366,8 @@ class ChunkLoop:
         if len(check):
             entered[check] = self.queue.rest_refused(
                 check, self.step, lambda waypoints: self._refused(waypoints, check, area))
+        if self.replan_on_zone_change:
+            entered |= (version != self.planned_version) & self.queue.planned
         entered &= self.replanning == 0
         ask = ((remaining <= self.lead) & ~planning) | entered
         if ask.any():
@@ -422,6 +440,8 @@ class ChunkLoop:
             self.replanning[rows[mine]] = 0
             area, version = self._zones_now()
             stale = job.zone_version != version[rows]
+            if self.replan_on_zone_change:  # installed, guarded; `_ask_due` asks again
+                stale[:] = False
             if stale.any():  # planned before zones that it enters: dropped, asked for again
                 stale[stale] = self._refused(chunks[stale], rows[stale], area).any(axis=1)
             if stale.any():

@@ -236,11 +236,11 @@ def test_the_planning_process_stops_the_plan_in_flight_and_plans_the_pending_one
 
 
 @contextlib.contextmanager
-def submits_recorded(policy: DiffusionPolicy, zones: LiveZones
+def submits_recorded(policy: DiffusionPolicy, zones: LiveZones, **options: object
                      ) -> Iterator[tuple[ChunkLoop, list[tuple[PlanJob, bool]]]]:
     """A controller with its first chunk installed, whose worker from then on only records
     what is submitted, (job, cancel), as if a plan were always in flight."""
-    controller = live(ConstrainedPlanner(policy, SAFE, PUSHT_ROBOT), zones, lead=1)
+    controller = live(ConstrainedPlanner(policy, SAFE, PUSHT_ROBOT), zones, lead=1, **options)
     worker = controller.worker
     try:
         controller.observe(0, observation_with_pusher(200, 200))
@@ -312,6 +312,49 @@ def test_a_stopped_plan_that_arrives_anyway_is_dropped_without_asking_again(
         controller._on_result(PlanResult(replan, chunk[None], 0.1))
         controller.install_results()
         assert controller.stats.plans_dropped == 2 and len(submitted) == 3
+
+
+def test_with_replan_on_zone_change_any_zone_asks_for_a_plan_that_knows_it(
+        tiny_policy: DiffusionPolicy) -> None:
+    """`replan_on_zone_change` (the node's default): a zone far from the chunk still stops the
+    plan in flight and asks for one planned with it, once while that one is out. The plan
+    that arrives planned before a later zone, entering it, is installed (guarded as the chunk
+    in force is) rather than dropped, and the plan that knows the later zone is asked then."""
+    zones = LiveZones()
+    with submits_recorded(tiny_policy, zones, replan_on_zone_change=True) as (
+            controller, submitted):
+        chunk = controller.queue.waypoints[0].copy()
+        zones.upsert(1, rectangle(480, 10, 500, 30), now=0.0)  # far from every waypoint
+        controller.zones_changed()
+        controller.install_results()
+        assert [cancel for _, cancel in submitted] == [True]
+        replan = submitted[0][0]
+        assert replan.zone_version[0] == zones.version_at(0)  # planned with the zone
+        x, y = controller.queue.upcoming(np.array([0]), 0, 2)[0, 1]
+        zones.upsert(2, rectangle(x - 2, y - 2, x + 2, y + 2), now=0.0)  # on the chunk
+        controller.zones_changed()
+        controller.install_results()
+        assert len(submitted) == 1  # the replan is out: not asked twice
+        controller._on_result(PlanResult(replan, chunk[None], 0.1))  # enters zone 2
+        controller.install_results()
+        assert controller.stats.plans_dropped == 0 and controller.stats.plans_installed == 2
+        assert [cancel for _, cancel in submitted] == [True, True]
+        assert submitted[1][0].zone_version[0] == zones.version_at(0)
+        assert controller.queue.remaining(0)[0] > 0  # waypoints to execute meanwhile
+
+
+def test_the_measured_lead_leaves_room_for_a_plan_stopped_and_made_again(
+        tiny_policy: DiffusionPolicy) -> None:
+    """Asked `lead` steps before the chunk runs out, a plan that a zone stops at its end and
+    that is made again takes two planning times: lead covers them and a step."""
+    controller = ChunkLoop.live(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT), LiveZones(),
+                                None, rate_hz=10.0)
+    try:
+        for seconds, lead in ((0.03, 2), (0.21, 6), (0.5, 8)):
+            controller.plan_seconds = seconds
+            assert controller.lead == lead
+    finally:
+        controller.shutdown()
 
 
 def test_a_replan_that_never_comes_is_asked_again_and_does_not_block_the_next(
@@ -611,10 +654,10 @@ def observation_with_pusher(x: float, y: float) -> np.ndarray:
 
 
 def live(planner: ConstrainedPlanner, zones: LiveZones, lead: int | None = None,
-         process_threads: int | None = None) -> ChunkLoop:
+         process_threads: int | None = None, **options: object) -> ChunkLoop:
     """The loop as the node runs it live: plans from a thread (or a process), warmed up."""
     warm_up(planner)
-    return ChunkLoop.live(planner, zones, process_threads, lead=lead)
+    return ChunkLoop.live(planner, zones, process_threads, lead=lead, **options)
 
 
 def installed(controller: ChunkLoop) -> None:

@@ -14,8 +14,9 @@ the background and deliver whenever the plan is done. Whatever the worker, the r
   with `replan_on_zone_change` (live), so does every change of the zones, so that a plan that
   knows them follows any zone within one planning time;
 - a plan is installed when it arrives, the waypoints whose time has passed skipped
-  (action_queue.py); it is dropped if it is another episode's or configuration's, or if it was
-  planned before zones that it enters (and asked for again); with `replan_on_zone_change` it
+  (action_queue.py); it is dropped if it is another episode's or configuration's, if every
+  waypoint's time has passed, or if it was planned before zones that it enters (and asked for
+  again); with `replan_on_zone_change` it
   is installed even then (guarded as the chunk in force is, below), so the robot is not left
   without waypoints while the plan that knows the zones is made;
 - a row without a waypoint holds its last setpoint;
@@ -433,6 +434,11 @@ class ChunkLoop:
             self.stats.planned_chunks += len(job.rows)
             self.stats.planner_calls += 1
             if job.generation != self.generation or self.history is None:
+                self.stats.plans_dropped += len(job.rows)
+                continue
+            if self.handover != "sync" and self.step - job.step >= chunks.shape[1]:
+                # Every waypoint's time has passed (a planner that started late, as a planning
+                # process still starting does): nothing to install; `_ask_due` asks again.
                 self.stats.plans_dropped += len(job.rows)
                 continue
             rows = job.rows

@@ -343,6 +343,33 @@ def test_with_replan_on_zone_change_any_zone_asks_for_a_plan_that_knows_it(
         assert controller.queue.remaining(0)[0] > 0  # waypoints to execute meanwhile
 
 
+def test_a_first_plan_that_arrives_after_all_its_waypoints_passed_is_asked_for_again(
+        tiny_policy: DiffusionPolicy) -> None:
+    """A planning process still starting delivers the episode's first plan seconds late: every
+    waypoint's time has passed, so it is not installed (nothing of it could execute) and a new
+    plan is asked at once; the steps meanwhile are held, and none counts as late (there was no
+    usable first plan yet)."""
+    controller = live(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT), LiveZones())
+    worker, submitted = controller.worker, []
+    controller.worker = SimpleNamespace(busy=True, submit=lambda job, cancel=False:
+                                        submitted.append(job))
+    try:
+        controller.observe(0, observation_with_pusher(200, 200))
+        for step in range(1, 30):
+            controller.observe(step, observation_with_pusher(200, 200))
+        assert len(submitted) == 1
+        chunk = np.full((1, 15, 2), 200.0)
+        controller._on_result(PlanResult(submitted[0], chunk, 0.2))
+        controller.worker.busy = False
+        controller.observe(30, observation_with_pusher(200, 200))
+        assert controller.stats.plans_installed == 0 and controller.stats.plans_dropped == 1
+        assert len(submitted) == 2 and submitted[1].step == 30  # asked again, from now
+        assert controller.stats.late_steps == 0 and controller.stats.held_steps == 31
+    finally:
+        controller.worker = worker
+        controller.shutdown()
+
+
 def test_the_measured_lead_leaves_room_for_a_plan_stopped_and_made_again(
         tiny_policy: DiffusionPolicy) -> None:
     """Asked `lead` steps before the chunk runs out, a plan that a zone stops at its end and

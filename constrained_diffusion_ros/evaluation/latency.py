@@ -36,13 +36,16 @@ from constrained_diffusion_ros.policy.weights import load_policy
 
 def handover_jumps(commanded: np.ndarray, executed_chunk: np.ndarray) -> tuple[float, float]:
     """Mean distance between consecutive setpoints (E, T, 2) where a new chunk takes over from
-    another or from a held setpoint (the first chunk of an episode excluded), and within one."""
+    another or from a held setpoint (the first chunk of an episode excluded), and within one;
+    NaN where there is none (a plan every tick: no two steps of one chunk)."""
     step = np.linalg.norm(np.diff(commanded, axis=1), axis=-1)  # (E, T - 1)
     before, after = executed_chunk[:, :-1], executed_chunk[:, 1:]
     first = np.where(executed_chunk >= 0, executed_chunk, np.iinfo(np.int64).max).min(axis=1)
     handover = (after != before) & (after >= 0) & (after != first[:, None])
     within = (after == before) & (after >= 0)
-    return float(step[handover].mean()), float(step[within].mean())
+    def mean(mask: np.ndarray) -> float:
+        return float(step[mask].mean()) if mask.any() else float("nan")
+    return mean(handover), mean(within)
 
 
 def build_parser() -> argparse.ArgumentParser:

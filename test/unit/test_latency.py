@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -30,3 +31,12 @@ def test_the_jump_at_a_handover_is_told_apart_from_steps_within_a_chunk() -> Non
     chunk = np.array([[0, 0, 0, 1, 1]])
     jump, within = handover_jumps(commanded, chunk)
     assert jump == pytest.approx(10.0) and within == pytest.approx(1.0)
+
+
+def test_a_plan_every_tick_has_no_step_within_a_chunk_and_says_so_without_a_warning() -> None:
+    commanded = np.array([[[0.0, 0.0], [1.0, 0.0], [3.0, 0.0], [6.0, 0.0]]])
+    chunk = np.array([[0, 1, 2, 3]])  # a new chunk at every step
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # numpy's "mean of empty slice" would raise here
+        jump, within = handover_jumps(commanded, chunk)
+    assert jump == pytest.approx(2.0) and np.isnan(within)

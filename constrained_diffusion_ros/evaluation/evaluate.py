@@ -104,6 +104,11 @@ def run(args: argparse.Namespace) -> int:
     configs = select(load_evaluated(directory), args.configs, "configurations")
     chosen_of = {c.name: [s for s in scenarios if s.paper or c.scenarios == "all"]
                  for c in configs}
+    for config in configs:  # a cell asked for and not run is said, not left as a bare "-"
+        skipped = [s.name for s in scenarios if s not in chosen_of[config.name]]
+        if skipped:
+            print(f"{config.name} runs on the paper's scenarios only (config/evaluation.yaml): "
+                  f"not on {', '.join(skipped)}", file=sys.stderr)
     drawn = figure_cell(args, {(s.name, c) for c, chosen in chosen_of.items() for s in chosen})
     policy = load_policy_for(args)
     seeds = list(range(args.first_seed, args.first_seed + args.episodes))

@@ -153,6 +153,23 @@ def test_a_short_evaluation_runs_end_to_end(tmp_path: Path, tiny_policy: Diffusi
     assert "0.5 left" in capsys.readouterr().out
 
 
+def test_a_configuration_kept_to_the_papers_scenarios_says_which_it_skips(
+        tmp_path: Path, tiny_policy: DiffusionPolicy, capsys: pytest.CaptureFixture[str]) -> None:
+    """Asked for on a scenario of ours, a configuration that evaluation.yaml keeps to the
+    paper's scenarios runs on the paper's only, and says so in one line."""
+    model, output = save_policy(tiny_policy, tmp_path / "model"), tmp_path / "report"
+    code = evaluate.main([
+        "--model", str(model), "--scenarios", "left_0.5", "l_shape",
+        "--configs", "ddim10_r_g10_p_safe_best8", "--episodes", "1", "--steps", "8",
+        "--output", str(output)])
+    assert code == 0
+    cells = json.loads((output / "results.json").read_text())
+    assert [c["scenario"] for c in cells] == ["left_0.5"]
+    err = capsys.readouterr().err
+    assert "ddim10_r_g10_p_safe_best8 runs on the paper's scenarios only" in err
+    assert "not on l_shape" in err
+
+
 def test_an_unknown_scenario_is_a_clear_error(tmp_path: Path,
                                               capsys: pytest.CaptureFixture[str]) -> None:
     code = evaluate.main(["--scenarios", "center_0.2", "nowhere", "--configs", "none",

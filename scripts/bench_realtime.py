@@ -53,7 +53,7 @@ from constrained_diffusion_ros.evaluation.launcher import (
     NodeProcesses,
     random_domain_id,
 )
-from constrained_diffusion_ros.paths import default_model_dir
+from constrained_diffusion_ros.paths import SOURCE_ROOT, default_model_dir
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from msg_schemas import NAMESPACE, SERVICES, TOPICS, qos_profile
 from msg_schemas.conversions import (
@@ -740,6 +740,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, signal.default_int_handler)
+    checkout = Path(__file__).resolve().parents[1]
+    if checkout != SOURCE_ROOT:  # the nodes would run the package imported, not this checkout
+        print(f"bench_realtime: this script is in {checkout}, but the package it runs is "
+              f"{SOURCE_ROOT}'s; to measure this checkout: PYTHONPATH={checkout}",
+              file=sys.stderr)
     print(f"realtime benchmark: model {args.model}, configurations {args.configurations}")
     try:
         for condition in args.conditions:

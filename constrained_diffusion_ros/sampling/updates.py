@@ -19,14 +19,21 @@ from diffusers import DDIMScheduler, DDPMScheduler
 
 @dataclass(frozen=True)
 class Update:
-    """One update's scalars (0-d tensors, the scheduler's dtype)."""
+    """One update's scalars, computed as 0-d tensors in the scheduler's dtype and kept as the
+    Python floats of those values: a tensor times a Python float is the same product in the
+    tensor's dtype, without a 0-d tensor's dispatch at every operation."""
 
-    sqrt_beta: torch.Tensor  # (1 - alpha_prod_t) ** 0.5
-    sqrt_alpha: torch.Tensor  # alpha_prod_t ** 0.5
-    original: torch.Tensor  # weight of the predicted clean sample
-    current: torch.Tensor | None  # DDPM: weight of the current sample
-    direction: torch.Tensor | None  # DDIM: weight of the predicted noise
-    noise: torch.Tensor | None  # standard deviation of the noise added; None: none
+    sqrt_beta: float  # (1 - alpha_prod_t) ** 0.5
+    sqrt_alpha: float  # alpha_prod_t ** 0.5
+    original: float  # weight of the predicted clean sample
+    current: float | None  # DDPM: weight of the current sample
+    direction: float | None  # DDIM: weight of the predicted noise
+    noise: float | None  # standard deviation of the noise added; None: none
+
+    def __post_init__(self) -> None:
+        for name, value in vars(self).items():
+            if value is not None:
+                object.__setattr__(self, name, float(value))
 
 
 class ScheduledUpdates:

@@ -184,22 +184,22 @@ def test_timestep_spacing_and_eta_shape_the_ddim_schedule(tiny_policy: Diffusion
     assert torch.equal(deterministic, again) and not torch.equal(deterministic, stochastic)
 
 
-@pytest.mark.parametrize(("kind", "steps", "eta"),
-                         [("ddpm", 100, 0.0), ("ddpm", 10, 0.0), ("ddim", 10, 0.0),
-                          ("ddim", 10, 1.0)])
+@pytest.mark.parametrize(("kind", "steps", "eta", "batch"),
+                         [("ddpm", 100, 0.0, 1), ("ddpm", 10, 0.0, 4), ("ddim", 10, 0.0, 1),
+                          ("ddim", 10, 1.0, 300)])
 def test_the_precomputed_updates_are_the_schedulers_own_bit_for_bit(
-        tiny_policy: DiffusionPolicy, kind: str, steps: int, eta: float) -> None:
+        tiny_policy: DiffusionPolicy, kind: str, steps: int, eta: float, batch: int) -> None:
     """A whole schedule of updates, noise drawn from the same generator: equal to diffusers'
     `step` to the last bit, so the sampler's results (and the committed reports) stay theirs."""
     sampler = DenoisingSampler(tiny_policy, kind, steps, eta=eta)
     updates = ScheduledUpdates(sampler.scheduler, eta)
     theirs = torch.Generator().manual_seed(3)
     ours = torch.Generator().manual_seed(3)
-    reference = torch.randn(4, 16, 2, generator=torch.Generator().manual_seed(1))
+    reference = torch.randn(batch, 16, 2, generator=torch.Generator().manual_seed(1))
     fast = reference.clone()
     outputs = torch.Generator().manual_seed(2)
     for index, timestep in enumerate(sampler.scheduler.timesteps):
-        output = torch.randn(4, 16, 2, generator=outputs)
+        output = torch.randn(batch, 16, 2, generator=outputs)
         reference = sampler.scheduler.step(output, timestep, reference, generator=theirs,
                                            eta=eta).prev_sample if kind == "ddim" else \
             sampler.scheduler.step(output, timestep, reference, generator=theirs).prev_sample

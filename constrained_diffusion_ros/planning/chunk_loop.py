@@ -16,9 +16,9 @@ the background and deliver whenever the plan is done. Whatever the worker, the r
 - a plan is installed when it arrives, the waypoints whose time has passed skipped
   (action_queue.py); it is dropped if it is another episode's or configuration's, if every
   waypoint's time has passed, or if it was planned before zones that it enters (and asked for
-  again); with `replan_on_zone_change` it
-  is installed even then (guarded as the chunk in force is, below), so the robot is not left
-  without waypoints while the plan that knows the zones is made;
+  again); with `replan_on_zone_change` it is installed even then (guarded as the chunk in force
+  is, below), so the robot is not left without waypoints while the plan that knows the zones
+  is made;
 - a row without a waypoint holds its last setpoint;
 - every setpoint passes the guard against the zones in force: a waypoint planned before them
   that they now refuse is moved out of them first (`keep_out`), then the planner's guard (the
@@ -363,12 +363,14 @@ class ChunkLoop:
         if len(moved):  # zones came onto the setpoints held before them
             entered[moved] = self._refused(self.held_before[moved][:, None], moved, area)[:, 0]
             self.held_moved[:] = False
-        check = np.nonzero(~entered & (version != self.planned_version) & (remaining > 0))[0]
-        if len(check):
-            entered[check] = self.queue.rest_refused(
-                check, self.step, lambda waypoints: self._refused(waypoints, check, area))
-        if self.replan_on_zone_change:
-            entered |= (version != self.planned_version) & self.queue.planned
+        changed = version != self.planned_version
+        if self.replan_on_zone_change:  # any change: no need to look where the zones lie
+            entered |= changed & self.queue.planned
+        else:
+            check = np.nonzero(~entered & changed & (remaining > 0))[0]
+            if len(check):
+                entered[check] = self.queue.rest_refused(
+                    check, self.step, lambda waypoints: self._refused(waypoints, check, area))
         entered &= self.replanning == 0
         ask = ((remaining <= self.lead) & ~planning) | entered
         if ask.any():
@@ -445,10 +447,10 @@ class ChunkLoop:
             mine = self.replanning[rows] == job.serial
             self.replanning[rows[mine]] = 0
             area, version = self._zones_now()
-            stale = job.zone_version != version[rows]
-            if self.replan_on_zone_change:  # installed, guarded; `_ask_due` asks again
-                stale[:] = False
-            if stale.any():  # planned before zones that it enters: dropped, asked for again
+            # Planned before the zones in force: with replan_on_zone_change installed, guarded,
+            # and `_ask_due` asks again; else dropped if it enters them, and asked for again.
+            stale = (job.zone_version != version[rows]) & (not self.replan_on_zone_change)
+            if stale.any():
                 stale[stale] = self._refused(chunks[stale], rows[stale], area).any(axis=1)
             if stale.any():
                 self.stats.plans_dropped += int(stale.sum())

@@ -67,12 +67,14 @@ class ResamplingThenPush:
     area: RestrictedArea
     step_size: float
 
+    def __post_init__(self) -> None:
+        self._push = GradientPush(self.area, self.step_size)
+
     def __call__(self, sample: Tensor, step: DenoisingStep) -> Tensor:
         inside = self.area.contains(sample)
         if not inside.any():
             return sample
-        resampled = Resampling.blend(sample, inside, step)
-        return GradientPush(self.area, self.step_size)(resampled, step)
+        return self._push(Resampling.blend(sample, inside, step), step)
 
 
 @dataclass

@@ -23,6 +23,7 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from constrained_diffusion_ros.nodes.observation_input import PENDING_HALVES, keep_pending
+from constrained_diffusion_ros.nodes.policy_status import ReactionTimes
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from msg_schemas import FRAME_ID, SERVICES, TOPICS
 from sim_bridge import AGENT_RADIUS
@@ -364,3 +365,19 @@ def test_observation_halves_that_never_pair_cannot_pile_up() -> None:
     for k in range(1000):
         keep_pending(pending, 1e9 + k, np.zeros(2))
     assert len(pending) == PENDING_HALVES and min(pending) == 1e9 + 1000 - PENDING_HALVES
+
+
+def test_replan_latency_counts_only_a_plan_that_knows_the_zone() -> None:
+    """`replan_latency_ms`: NaN from a zone change until a plan planned with it is installed;
+    a plan made before it, installed meanwhile, does not count."""
+    reaction = ReactionTimes()
+    reaction.zone_changed()
+    assert reaction.status()["replan_latency_ms"] == "nan"
+    reaction.plan_installed(knows_zones=False)
+    assert reaction.status()["replan_latency_ms"] == "nan"
+    time.sleep(0.002)
+    reaction.plan_installed(knows_zones=True)
+    first = float(reaction.status()["replan_latency_ms"])
+    assert first >= 2.0
+    reaction.plan_installed(knows_zones=True)  # a later plan: the zone's answer stays
+    assert float(reaction.status()["replan_latency_ms"]) == first

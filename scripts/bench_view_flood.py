@@ -24,6 +24,7 @@ from websockets.sync.client import connect
 
 from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_domain_id
 from constrained_diffusion_ros.view.layout import view_channels
+from constrained_diffusion_ros.view.zone_requests import ZONE_REQUEST_SCHEMA_NAME
 from msg_schemas import NAMESPACE, TOPICS, qos_profile
 from msg_schemas.spin import spin_until
 
@@ -74,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
         with ws:
             ws.send(json.dumps({"op": "advertise", "channels": [
                 {"id": 1, "topic": view_channels()["zone_requests"], "encoding": "json",
-                 "schemaName": "constrained_diffusion_ros/ZoneRequest"}]}))
+                 "schemaName": ZONE_REQUEST_SCHEMA_NAME}]}))
             time.sleep(0.5)  # the advertisement before the data
             started = time.monotonic()
             for k in range(args.requests):

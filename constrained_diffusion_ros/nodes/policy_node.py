@@ -125,7 +125,7 @@ class PolicyNode(Node):
         seed = self.values["noise_seed"]
         if not self.realtime:  # a fresh loop, as a fresh node would run
             self.loop = ChunkLoop.simulated(self.planner, self.zones, self.generator,
-                                            noise_seed=seed)
+                                            noise_seed=seed, on_install=self._after_plan)
             return
         warm_up(self.planner)  # the first zone does not pay for first calls
         if self.loop is not None:
@@ -139,7 +139,7 @@ class PolicyNode(Node):
             soft=values["prefix_soft"], rate_hz=self.rate_hz,
             wake=self.create_guard_condition(self._on_plan_ready).trigger,
             every_tick=values["replan_every_tick"],
-            replan_on_zone_change=values["replan_on_zone_change"])
+            replan_on_zone_change=values["replan_on_zone_change"], on_install=self._after_plan)
 
     def _on_parameters(self, parameters) -> SetParametersResult:
         for parameter in parameters:
@@ -174,12 +174,10 @@ class PolicyNode(Node):
             if self.sound.last_sound is not None:
                 self._send(self.sound.last_sound, stamp_msg)
             return
-        started, installed = time.perf_counter(), self.loop.stats.plans_installed
+        started = time.perf_counter()
         setpoint = self.loop.observe(step, observation.astype(np.float32))
         planning_ms = 1000 * (time.perf_counter() - started)
         self._send(setpoint, stamp_msg)
-        if self.loop.stats.plans_installed != installed:
-            self._after_plan()
         self._publish_status(planning_ms)
 
     def _take(self, stamp: float) -> np.ndarray | None:
@@ -202,12 +200,10 @@ class PolicyNode(Node):
     def _on_plan_ready(self) -> None:
         """Realtime, woken by the planning worker (or a zone change): plans installed, and
         whatever is due asked for."""
-        before = self.loop.stats.plans_installed
         self._send(self.loop.install_results(), publish=False)
-        if self.loop.stats.plans_installed != before:
-            self._after_plan()
 
     def _after_plan(self) -> None:
+        """Plans were installed (by an observation or when the worker woke the node)."""
         self.reaction.plan_installed(self.loop.knows_zones())
         self.plan_pub.publish(path_message(self.loop.chunk, self.get_clock().now().to_msg()))
 

@@ -115,7 +115,8 @@ class ChunkLoop:
     with the waypoints that will execute before it arrives (`delay` steps, or the measured
     planning time) held fixed: a zone is planned around as soon as planning allows, not at the
     next chunk. `replan_on_zone_change`: any change of the zones asks for a plan that knows
-    them (the module's rules).
+    them (the module's rules). `on_install` is called whenever plans were installed, whichever
+    call installed them (`observe` or `install_results`).
 
     Call everything from one thread; a background worker's results wait until
     `install_results` (or the next `observe`) takes them, and `wake` is called when one arrives.
@@ -126,7 +127,8 @@ class ChunkLoop:
                  lead: int | None = None, soft: int = 4, rate_hz: float = 10.0,
                  noise_seed: int | None = None,
                  wake: Callable[[], None] = lambda: None, every_tick: bool = False,
-                 delay: int | None = None, replan_on_zone_change: bool = False) -> None:
+                 delay: int | None = None, replan_on_zone_change: bool = False,
+                 on_install: Callable[[], None] = lambda: None) -> None:
         if handover not in HANDOVERS:
             raise ValueError(f"handover must be one of {HANDOVERS}, got {handover!r}")
         config = planner.policy_config
@@ -139,6 +141,7 @@ class ChunkLoop:
         self.every_tick, self.fixed_delay = every_tick, delay
         self.replan_on_zone_change = replan_on_zone_change
         self.soft, self.rate_hz, self.noise_seed, self.wake = soft, rate_hz, noise_seed, wake
+        self.on_install = on_install
         self.n_obs_steps, self.first_executed = config.n_obs_steps, config.first_executed
         self.n_action_steps = config.n_action_steps
         self.stats = LoopStats()
@@ -158,7 +161,8 @@ class ChunkLoop:
     def simulated(cls, planner: ChunkPlanner, zones: ZoneSource | None = None,
                   generator: torch.Generator | None = None, delay: int = 0,
                   handover: str = "sync", noise_seed: int | None = None,
-                  every_tick: bool = False) -> ChunkLoop:
+                  every_tick: bool = False,
+                  on_install: Callable[[], None] = lambda: None) -> ChunkLoop:
         """The loop on a simulated clock, as the evaluation, the delay study and lockstep mode
         run it: plans made in the caller's thread from `generator`, ready `delay` steps after
         they are asked for, the next asked `delay` steps before the chunk runs out (sync: when
@@ -166,7 +170,8 @@ class ChunkLoop:
         if handover == EVERY_TICK:
             handover, every_tick = "async_prefix", True
         return cls(planner, SimulatedPlanning.factory(generator, delay), zones, handover,
-                   lead=delay, noise_seed=noise_seed, every_tick=every_tick, delay=delay)
+                   lead=delay, noise_seed=noise_seed, every_tick=every_tick, delay=delay,
+                   on_install=on_install)
 
     @classmethod
     def live(cls, planner: ConstrainedPlanner, zones: ZoneSource,
@@ -176,7 +181,7 @@ class ChunkLoop:
         process with `process_threads` torch threads, at idle priority if `idle`
         (`PlanningProcess`), or with None in a thread of this process (`PlanningThread`);
         `options` are the loop's (lead, soft, rate_hz, wake, every_tick,
-        replan_on_zone_change)."""
+        replan_on_zone_change, on_install)."""
         def make_worker(planner: ChunkPlanner, on_result: Callable[[PlanResult], None]
                         ) -> PlanWorker:
             if process_threads is None:
@@ -427,6 +432,7 @@ class ChunkLoop:
         return ready
 
     def _install(self, results: list[PlanResult]) -> None:
+        before = self.stats.plans_installed
         for result in results:
             job, chunks = result.job, result.chunk
             self.plan_seconds = (result.seconds if self.plan_seconds == 0.0
@@ -463,6 +469,8 @@ class ChunkLoop:
             self.queue.install(rows[keep], chunks[keep], first, self.step)
             self.planned_version[rows[keep]] = job.zone_version[keep]
             self.stats.plans_installed += int(keep.sum())
+        if self.stats.plans_installed != before:
+            self.on_install()
 
     def _update(self) -> np.ndarray:
         """The setpoints of the newest step from the chunks in force (the ones held where a row

@@ -728,6 +728,31 @@ def test_the_status_reads_before_the_first_observation_and_across_episodes(
         controller.shutdown()
 
 
+def test_on_install_is_called_whichever_call_installs_the_plan(
+        tiny_policy: DiffusionPolicy) -> None:
+    """A plan that arrives just before an observation is installed by `observe`, not by the
+    wake-up's `install_results`: the node must hear of it all the same (it times the reply
+    to a zone and publishes the plan from there)."""
+    calls = []
+    controller = live(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT), LiveZones(), lead=1,
+                      on_install=lambda: calls.append(controller.stats.plans_installed))
+    try:
+        controller.observe(0, observation_with_pusher(100, 100))
+        for _ in range(5000):  # the plan arrives; no one installs it before the next step
+            if not controller.worker.busy and controller._results:
+                break
+            threading.Event().wait(0.002)
+        controller.observe(1, observation_with_pusher(100, 100))  # takes the plan that came
+        assert calls == [1]
+        assert controller.install_results() is None  # nothing left: no second call
+        assert calls == [1]
+        controller.use_planner(controller.planner)  # asks for a plan at once
+        installed(controller)
+        assert calls == [1, 2]
+    finally:
+        controller.shutdown()
+
+
 def test_the_controller_installs_a_late_plan_without_the_steps_that_passed(
         tiny_policy: DiffusionPolicy) -> None:
     planner, started, release = held_planner(tiny_policy)

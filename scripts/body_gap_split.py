@@ -88,18 +88,31 @@ def main(argv: list[str] | None = None) -> int:
     print("| scenario | row | all | point-safe disc entered | stayed out | the row's own disc "
           "entered |")
     print("| --- | --- | --- | --- | --- | --- |")
+    grown_split = []
     for scenario in chosen:
         block = {config.name: slice(first[(scenario.name, config.name)],
                                     first[(scenario.name, config.name)] + len(seeds))
                  for config in rows.values()}
         went_in, started_in = entered(log.pusher[block[point.name]], scenario)
         parts = (went_in & ~started_in, ~went_in & ~started_in)
+        own_in = {}
         for label, config in rows.items():
             best = log.best_score[block[config.name]]
             own, own_start = entered(log.pusher[block[config.name]], scenario)
+            own_in[label] = own & ~own_start
             print(f"| {scenario.name} ({parts[0].sum()} / {parts[1].sum()}) | {label} | "
                   f"{cell(best)} | {cell(best[parts[0]])} | {cell(best[parts[1]])} | "
-                  f"{(own & ~own_start).sum()} |")
+                  f"{own_in[label].sum()} |")
+        grown = own_in["point-safe, zones grown"]
+        for split, where in (("also entered", parts[0] & grown), ("stayed out", parts[0] & ~grown)):
+            scores = [cell(log.best_score[block[config.name]][where]) for config in rows.values()]
+            grown_split.append(f"| {scenario.name} | {split} ({where.sum()}) | "
+                               + " | ".join(scores) + " |")
+    print("\nThe episodes where the point-safe disc entered a zone, split by whether the disc of "
+          "the point-safe row on grown zones did too:\n")
+    print("| scenario | grown row's disc | " + " | ".join(rows) + " |")
+    print("| --- | --- |" + " --- |" * len(rows))
+    print("\n".join(grown_split))
     return 0
 
 

@@ -94,16 +94,18 @@ class PolicyNode(Node):
         self.reaction = ReactionTimes()
         self.executor_realtime: bool | None = None  # asked for on the executor's own thread
         if self.realtime:
+            # What start-up built (policy, torch, rclpy) lives as long as the node: out of the
+            # collector's sight, so a full collection does not hold the GIL to scan it all.
+            # Before the clock starts: this last full pass holds the GIL (about 150 ms on a
+            # 2-core VM), and a clock thread cannot send a tick without it.
+            gc.collect()
+            gc.freeze()
             self.clock = ControlClock(self.rate_hz, self.output.repeat)
             if not self.clock.realtime:
                 self.get_logger().warning(
                     "control clock without real-time priority (not allowed here: raise "
                     "rtprio in /etc/security/limits.conf); ticks may be late on a busy machine")
             self.create_timer(STATUS_PERIOD_S, self._on_status_timer)
-            # What start-up built (policy, torch, rclpy) lives as long as the node: out of the
-            # collector's sight, so a full collection does not hold the GIL to scan it all.
-            gc.collect()
-            gc.freeze()
         startup.mark("the rest")
         self.get_logger().info(
             f"{self.mode} policy from {values['model']}, configuration "

@@ -68,7 +68,14 @@ def test_recorder_writes_every_topic_and_metadata(ros, sim, processes, tmp_path)
         zone.polygon.id = 40 + i
         publishers["zones"].publish(zone)
         publishers["keepout_mask"].publish(OccupancyGrid())
-    ros.spin_for(0.2)  # let the last messages reach the recorder; it drains its queue on stop
+
+    def recorded_all() -> bool:  # what the recorder has flushed holds every message published
+        held = bags.read_unfinished(bag)
+        return len(held.get(TOPICS["setpoint"].resolved(), [])) >= sim.sent and all(
+            len(held.get(TOPICS[topic].resolved(), [])) >= 2 for topic in published)
+
+    # Not a fixed wait: on a busy machine a reliable sample can take a retransmission to arrive.
+    assert ros.spin_until(recorded_all), f"recorder did not get everything:\n{log.read_text()}"
     metadata_file.write_text(json.dumps({"scenario": "two_zones", "result": {"score": 0.5}}))
     recorder.send_signal(signal.SIGINT)
     assert recorder.wait(timeout=15) == 0, log.read_text()

@@ -124,6 +124,8 @@ class PolicyNode(Node):
                              f"{', '.join(self.configurations)}")
         self.config = self.configurations[name]
         self.planner = ConstrainedPlanner(self.policy, self.config, self.robot)
+        if not (self.realtime and self.values["planning_process"]):
+            self.planner.prepare_sampling()  # plans in this process: ready before it must
         seed = self.values["noise_seed"]
         if not self.realtime:  # a fresh loop, as a fresh node would run
             self.loop = ChunkLoop.simulated(self.planner, self.zones, self.generator,

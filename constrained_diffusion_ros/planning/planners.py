@@ -10,6 +10,7 @@ batch of episodes.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import cached_property
 from typing import Protocol
 
 import numpy as np
@@ -82,11 +83,23 @@ class ConstrainedPlanner:
     def __init__(self, policy: DiffusionPolicy, config: ConstraintConfig,
                  robot: RobotModel) -> None:
         self.policy, self.config, self.robot = policy, config, robot
-        self.sampler = DenoisingSampler(policy, config.sampler, config.denoising_steps,
-                                       config.timestep_spacing, config.eta)
         # The filter before (slide: false) is kept as it was, for the side-by-side comparison.
         self.shield = (PusherShield(robot, slide=config.slide, late=config.slide)
                        if config.shield else None)
+
+    @cached_property
+    def sampler(self) -> DenoisingSampler:
+        """Built at the first plan, or by `prepare_sampling`: a planner that only guards
+        setpoints, as the live node's does while its planning process plans, never builds a
+        scheduler and so never imports diffusers (most of two seconds at start-up)."""
+        c = self.config
+        return DenoisingSampler(self.policy, c.sampler, c.denoising_steps, c.timestep_spacing,
+                                c.eta)
+
+    def prepare_sampling(self) -> None:
+        """Builds the sampler now, so that the first plan does not wait for it (nor import
+        diffusers on a planning thread while the control clock waits for the interpreter)."""
+        _ = self.sampler
 
     @property
     def policy_config(self) -> PolicyConfig:

@@ -96,6 +96,7 @@ def serve(descriptor: int, threads: int, niceness: int, idle: bool = False) -> N
                 policy = payload
             elif kind == Request.PLANNER:
                 planner = ConstrainedPlanner(policy, *payload)
+                planner.prepare_sampling()  # before the first job, not in it
             elif kind == Request.SEED:
                 generator.manual_seed(payload)
             elif kind == Request.JOB:

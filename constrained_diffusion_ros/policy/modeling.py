@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import cached_property
+from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
@@ -11,6 +13,21 @@ from constrained_diffusion_ros.policy.config import PolicyConfig
 from constrained_diffusion_ros.policy.normalizer import MinMaxNormalizer
 from constrained_diffusion_ros.policy.schedulers import make_scheduler
 from constrained_diffusion_ros.policy.unet import ConditionalUnet1D
+
+if TYPE_CHECKING:
+    from diffusers import DDPMScheduler
+
+
+def build_unet(config: PolicyConfig) -> ConditionalUnet1D:
+    """The denoising network `config` describes, freshly initialised."""
+    return ConditionalUnet1D(
+        action_dim=config.action_dim,
+        global_cond_dim=config.global_cond_dim,
+        down_dims=config.down_dims,
+        kernel_size=config.kernel_size,
+        n_groups=config.n_groups,
+        step_embed_dim=config.diffusion_step_embed_dim,
+    )
 
 
 class DiffusionPolicy(nn.Module):
@@ -21,23 +38,21 @@ class DiffusionPolicy(nn.Module):
         if set(config.normalizer) != {"obs", "action"}:
             raise ValueError("policy config needs normaliser stats for 'obs' and 'action'")
         self.config = config
-        self.unet = ConditionalUnet1D(
-            action_dim=config.action_dim,
-            global_cond_dim=config.global_cond_dim,
-            down_dims=config.down_dims,
-            kernel_size=config.kernel_size,
-            n_groups=config.n_groups,
-            step_embed_dim=config.diffusion_step_embed_dim,
-        )
+        self.unet = build_unet(config)
         self.obs_normalizer = MinMaxNormalizer.from_dict(config.normalizer["obs"])
         self.action_normalizer = MinMaxNormalizer.from_dict(config.normalizer["action"])
-        self.train_scheduler = make_scheduler(config, "ddpm")
         # Where the network runs at inference when not in torch (runtime.py's `use_runtime`):
         # (sample, one step's FiLM outputs) -> noise, as `unet.forward_filmed`; None: torch.
         self.fast: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None
         # The FiLM's step part for one schedule and its weights on the condition, kept for a
         # fast runtime (`denoiser`).
         self._films: tuple[object, bytes, torch.Tensor, torch.Tensor] | None = None
+
+    @cached_property
+    def train_scheduler(self) -> DDPMScheduler:
+        """The training noise schedule, built when training first asks: loading a policy to
+        plan with does not import diffusers for it."""
+        return make_scheduler(self.config, "ddpm")
 
     @property
     def device(self) -> torch.device:

@@ -40,7 +40,7 @@ class MinMaxNormalizer:
             minimum, maximum = torch.tensor(data["min"]), torch.tensor(data["max"])
         except (KeyError, TypeError, ValueError) as error:
             raise ValueError(f"normaliser stats need 'min' and 'max' lists: {error}") from error
-        # Checked on the lists, not the tensors: a network sized on the meta device has no values.
+        # Checked on the lists, which hold values wherever the tensors are made.
         if not all(np.isfinite(np.asarray(data[b], dtype=np.float64)).all()
                    for b in ("min", "max")):
             # NaN or inf turns every normalised value into NaN: the policy would run on noise

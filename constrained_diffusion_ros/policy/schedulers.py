@@ -1,12 +1,19 @@
-"""Noise schedulers (diffusers) built from a policy config, so training and sampling agree."""
+"""Noise schedulers (diffusers) built from a policy config, so training and sampling agree.
+
+diffusers is imported when a scheduler is first built, not with this module: importing it takes
+most of two seconds (it imports torch's compiler stack), which a process that only checks
+configurations or guards setpoints (the live policy node, whose plans come from its planning
+process) need not spend at start-up.
+"""
 
 from __future__ import annotations
 
-from typing import Literal
-
-from diffusers import DDIMScheduler, DDPMScheduler
+from typing import TYPE_CHECKING, Literal
 
 from constrained_diffusion_ros.policy.config import PolicyConfig
+
+if TYPE_CHECKING:
+    from diffusers import DDIMScheduler, DDPMScheduler
 
 SchedulerKind = Literal["ddpm", "ddim"]
 TimestepSpacing = Literal["leading", "trailing", "linspace"]
@@ -14,7 +21,8 @@ SPACINGS = ("leading", "trailing", "linspace")
 
 
 def make_scheduler(config: PolicyConfig, kind: SchedulerKind = "ddpm",
-                   timestep_spacing: TimestepSpacing = "leading") -> DDPMScheduler:
+                   timestep_spacing: TimestepSpacing = "leading"
+                   ) -> DDPMScheduler | DDIMScheduler:
     """`timestep_spacing` (diffusers'): which training timesteps a shorter schedule visits.
     "leading" (10 of 100: 90, 80, .., 0) starts below the noisiest step, where the sample is
     still assumed to hold some signal; "trailing" (99, 89, .., 9) starts at pure noise."""
@@ -28,6 +36,8 @@ def make_scheduler(config: PolicyConfig, kind: SchedulerKind = "ddpm",
         "prediction_type": config.prediction_type,
         "timestep_spacing": timestep_spacing,
     }
+    from diffusers import DDIMScheduler, DDPMScheduler
+
     if kind == "ddpm":
         return DDPMScheduler(variance_type="fixed_small", **common)
     if kind == "ddim":

@@ -16,7 +16,7 @@ from constrained_diffusion_ros.policy.config import (
     regular_file,
 )
 from constrained_diffusion_ros.policy.device import resolve_device
-from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
+from constrained_diffusion_ros.policy.modeling import DiffusionPolicy, build_unet
 
 WEIGHTS_FILE = "model.safetensors"
 CONFIG_FILE = "config.json"
@@ -62,9 +62,10 @@ def load_policy(directory: str | Path, device: str | torch.device = "cpu") -> Di
                       for name in weights.keys()}  # noqa: SIM118 (a safe_open is no dict)
     except (FileNotFoundError, SafetensorError, OSError) as error:
         raise ValueError(f"cannot read weights {path}: {error}") from error
-    with torch.device("meta"):
+    with torch.device("meta"):  # the network only: tensor arithmetic on meta tensors (the
+        # normalisers') runs torch's Python reference kernels, which import its compiler (2 s)
         expected = {name: tuple(tensor.shape)
-                    for name, tensor in DiffusionPolicy(config).unet.state_dict().items()}
+                    for name, tensor in build_unet(config).state_dict().items()}
     missing = sorted(set(expected) - set(stored))
     unexpected = sorted(set(stored) - set(expected))
     wrong_shape = [k for k in expected if k in stored and stored[k] != expected[k]]

@@ -10,10 +10,9 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import torch
-from diffusers import SchedulerMixin
 
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.normalizer import MinMaxNormalizer
@@ -23,6 +22,9 @@ from constrained_diffusion_ros.policy.schedulers import (
     make_scheduler,
 )
 from constrained_diffusion_ros.sampling.updates import ScheduledUpdates
+
+if TYPE_CHECKING:  # imported where a scheduler is built (policy/schedulers.py)
+    from diffusers import SchedulerMixin
 
 
 @dataclass(frozen=True)

@@ -12,9 +12,12 @@ small variance, DDIM with any eta); anything else is refused at construction.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
-from diffusers import DDIMScheduler, DDPMScheduler
+
+if TYPE_CHECKING:  # imported where a scheduler is built (policy/schedulers.py)
+    from diffusers import DDIMScheduler, DDPMScheduler
 
 
 @dataclass(frozen=True)
@@ -41,6 +44,8 @@ class ScheduledUpdates:
     `index`, as `scheduler.step(...).prev_sample`."""
 
     def __init__(self, scheduler: DDPMScheduler | DDIMScheduler, eta: float = 0.0) -> None:
+        from diffusers import DDIMScheduler, DDPMScheduler
+
         config = scheduler.config
         if config.prediction_type != "epsilon" or config.thresholding:
             raise ValueError("precomputed updates cover epsilon prediction without "

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import torch
@@ -171,3 +175,32 @@ def test_a_waypoint_outside_the_workspace_violates_with_or_without_zones(
     mixed = MixedPlanner(tiny_policy, [ddim("none"), ddim("p", project=True)], PUSHT_ROBOT,
                          np.array([0]))
     assert mixed.violates(waypoints, None, np.array([0])).tolist() == [[True, False, False]]
+
+
+GUARD_ONLY = """
+import sys
+import numpy as np
+import constrained_diffusion_ros.nodes.policy_node  # what the node imports
+from constrained_diffusion_ros.paths import config_dir, default_model_dir
+from constrained_diffusion_ros.planning.chunk_loop import warm_up
+from constrained_diffusion_ros.planning.config import load_configurations
+from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
+from constrained_diffusion_ros.policy.weights import load_policy
+from constrained_diffusion_ros.pusht import PUSHT_ROBOT
+config = load_configurations(config_dir() / "configurations.yaml")["ddim10_r_g10_p_safe"]
+planner = ConstrainedPlanner(load_policy(default_model_dir()), config, PUSHT_ROBOT)
+warm_up(planner)
+print(sorted(m for m in ("diffusers", "torch._dynamo") if m in sys.modules))
+planner.prepare_sampling()
+print(sorted(m for m in ("diffusers", "torch._dynamo") if m in sys.modules))
+"""
+
+
+def test_a_planner_that_only_guards_does_not_import_diffusers() -> None:
+    """The live node guards setpoints while its planning process plans: it loads the policy and
+    builds its planner without importing diffusers and torch's compiler (most of two seconds
+    before its first setpoint); they come when the planner first needs its sampler."""
+    result = subprocess.run([sys.executable, "-c", GUARD_ONLY], capture_output=True, text=True,
+                            timeout=120, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split("\n")[:2] == ["[]", "['diffusers', 'torch._dynamo']"]

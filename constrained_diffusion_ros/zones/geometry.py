@@ -131,6 +131,33 @@ class _Edges(NamedTuple):
     scale: float
 
 
+class _Columns(NamedTuple):
+    """Every edge's start (ax, ay), direction (dx, dy), end's y, dy where it can divide, and
+    squared length, each (E,)."""
+
+    ax: Tensor
+    ay: Tensor
+    dx: Tensor
+    dy: Tensor
+    ay_end: Tensor
+    dy_nonzero: Tensor  # dy, or 1 where it is 0
+    length2: Tensor
+
+
+class _Outward(NamedTuple):
+    """`ZoneSet._outward`: distance to the boundary, point - nearest boundary point, inside,
+    the outward unit direction, on the boundary; with the vertices looked up, whether the
+    nearest point is a vertex and that vertex's clearance step (else None)."""
+
+    dist: Tensor
+    away: Tensor
+    inside: Tensor
+    unit: Tensor
+    on_boundary: Tensor
+    at_vertex: Tensor | None
+    vertex_step: Tensor | None
+
+
 def _cross(u: Tensor, v: Tensor) -> Tensor:
     return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
 
@@ -192,7 +219,7 @@ class ZoneSet(RestrictedArea):
         union = shapely.union_all([p for p in polygons if not p.is_empty])
         self._geometry = shapely.orient_polygons(union, exterior_cw=False)
         self._parts = [p for p in shapely.get_parts(self._geometry) if not p.is_empty]
-        self._tensors: dict[tuple[torch.dtype, torch.device], tuple[Tensor, ...]] = {}
+        self._tensors: dict[tuple, tuple[Tensor, ...]] = {}  # per dtype and device
 
     @cached_property
     def _edges(self) -> _Edges:
@@ -330,14 +357,14 @@ class ZoneSet(RestrictedArea):
         p, dtype = self._prepare(points)
         if self.is_empty:
             return torch.zeros_like(p).to(dtype)
-        return self._query(p)[1].to(dtype)
+        return self._outward(p).unit.to(dtype)
 
     def inside_and_outward(self, points: Tensor) -> tuple[Tensor, Tensor | None]:
         p, dtype = self._prepare(points)
         if self.is_empty:
             return torch.zeros(p.shape[:-1], dtype=torch.bool, device=p.device), None
         inside = self._inside(p)
-        return inside, (self._query(p, inside)[1].to(dtype) if inside.any() else None)
+        return inside, (self._outward(p, inside).unit.to(dtype) if inside.any() else None)
 
     def project_out(self, points: Tensor, margin: float = 0.0, passes: int = 2) -> Tensor:
         """Move points inside, or less than `margin` outside, to clearance `margin`; keep others.
@@ -430,14 +457,26 @@ class ZoneSet(RestrictedArea):
             self._tensors[key] = table.unbind(dim=1)
         return self._tensors[key]
 
+    def _edge_columns(self, device: torch.device, dtype: torch.dtype) -> _Columns:
+        """What the point queries read of every edge, as contiguous (E,) columns: taken once,
+        not sliced (and the end's y and |d|^2 not recomputed) at every query."""
+        key = ("columns", dtype, device)
+        if key not in self._tensors:
+            a, d, *_ = self._edge_tensors(device, dtype)
+            ax, ay, dx, dy = (t.contiguous() for t in (a[:, 0], a[:, 1], d[:, 0], d[:, 1]))
+            self._tensors[key] = _Columns(ax, ay, dx, dy, ay + dy, torch.where(dy != 0, dy, 1.0),
+                                          (d * d).sum(dim=-1))
+        return self._tensors[key]
+
     def _inside(self, p: Tensor) -> Tensor:
         """Even-odd ray test along +x against all edges (half-open at vertices)."""
-        a, d, *_ = self._edge_tensors(p.device, p.dtype)
-        px, py = p[..., None, 0], p[..., None, 1]
-        ay = a[:, 1]
-        straddle = (ay > py) != (ay + d[:, 1] > py)
-        x_cross = a[:, 0] + (py - ay) * d[:, 0] / torch.where(straddle, d[:, 1], 1.0)
-        return ((straddle & (px < x_cross)).sum(dim=-1) + self._inside_dropped) % 2 == 1
+        c = self._edge_columns(p.device, p.dtype)
+        px, py = p.unsqueeze(-2).unbind(-1)  # (..., 1) each
+        straddle = (c.ay > py) != (c.ay_end > py)
+        # An edge that straddles has dy != 0; the others' crossings are not counted.
+        x_cross = c.ax + (py - c.ay) * c.dx / c.dy_nonzero
+        crossings = (straddle & (px < x_cross)).sum(dim=-1)
+        return (crossings + 1 if self._inside_dropped else crossings) % 2 == 1
 
     def _nearest(self, p: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Distance to the boundary, (point - nearest boundary point), nearest edge, and where
@@ -445,10 +484,11 @@ class ZoneSet(RestrictedArea):
 
         Works on x and y planes (..., E) separately: reductions over a size-2 axis are slow.
         """
-        a, d, *_ = self._edge_tensors(p.device, p.dtype)
-        rx, ry = p[..., None, 0] - a[:, 0], p[..., None, 1] - a[:, 1]  # (..., E)
-        t = ((rx * d[:, 0] + ry * d[:, 1]) / (d * d).sum(dim=-1)).clamp(0.0, 1.0)
-        wx, wy = rx - t * d[:, 0], ry - t * d[:, 1]
+        c = self._edge_columns(p.device, p.dtype)
+        px, py = p.unsqueeze(-2).unbind(-1)
+        rx, ry = px - c.ax, py - c.ay  # (..., E)
+        t = ((rx * c.dx + ry * c.dy) / c.length2).clamp(0.0, 1.0)
+        wx, wy = rx - t * c.dx, ry - t * c.dy
         dist2, idx = (wx * wx + wy * wy).min(dim=-1)
         pick = idx.unsqueeze(-1)
         away = torch.cat([wx.gather(-1, pick), wy.gather(-1, pick)], dim=-1)
@@ -468,21 +508,34 @@ class ZoneSet(RestrictedArea):
         boundary point (..., 2), and the step (..., 2) whose multiple c from that point gives
         clearance c (the unit direction, or a vertex's clearance step at notch tips).
         `inside`: `_inside(p)`, where the caller has it."""
+        o = self._outward(p, inside, vertices=True)
+        # Inside points nearest to a vertex face a notch tip: leave along the notch, not past it.
+        step = torch.where(o.at_vertex & (o.on_boundary | o.inside[..., None]), o.vertex_step,
+                           o.unit)
+        return torch.where(o.inside, -o.dist, o.dist), o.unit, p - o.away, step
+
+    def _outward(self, p: Tensor, inside: Tensor | None = None, vertices: bool = False
+                 ) -> _Outward:
+        """The outward unit direction (`outward_direction`) and what it is made of. The
+        nearest edge's vertex steps are looked up only with `vertices` or where a point lies
+        on the boundary (where they decide the direction): a guidance hook asks at every
+        denoising step, mostly about points off the boundary."""
         dist, away, idx, t = self._nearest(p)
-        _, _, normal, start_step, end_step, _ = self._edge_tensors(p.device, p.dtype)
         inside = self._inside(p) if inside is None else inside
-        at_vertex = ((t <= 0) | (t >= 1))[..., None]
-        vertex_step = torch.where((t <= 0)[..., None], start_step[idx], end_step[idx])
         tol = 1024 * torch.finfo(p.dtype).eps * self._scale  # below this, `away` is mostly noise
         on_boundary = (dist <= tol)[..., None]
+        vec = torch.where(inside[..., None], -away, away)
+        unit = vec / dist[..., None].clamp_min(tol)
+        if not (vertices or on_boundary.any()):
+            return _Outward(dist, away, inside, unit, on_boundary, None, None)
+        _, _, normal, start_step, end_step, _ = self._edge_tensors(p.device, p.dtype)
+        at_vertex = ((t <= 0) | (t >= 1))[..., None]
+        vertex_step = torch.where((t <= 0)[..., None], start_step[idx], end_step[idx])
         boundary_unit = torch.where(
             at_vertex, vertex_step / vertex_step.norm(dim=-1, keepdim=True), normal[idx]
         )
-        vec = torch.where(inside[..., None], -away, away)
-        unit = torch.where(on_boundary, boundary_unit, vec / dist[..., None].clamp_min(tol))
-        # Inside points nearest to a vertex face a notch tip: leave along the notch, not past it.
-        step = torch.where(at_vertex & (on_boundary | inside[..., None]), vertex_step, unit)
-        return torch.where(inside, -dist, dist), unit, p - away, step
+        unit = torch.where(on_boundary, boundary_unit, unit)
+        return _Outward(dist, away, inside, unit, on_boundary, at_vertex, vertex_step)
 
     def _push(self, p: Tensor, clearance: float) -> Tensor:
         """One projection step: points with signed distance < clearance moved out to it."""

@@ -80,6 +80,22 @@ def test_outward_direction_hand_made() -> None:
     norms = union.outward_direction(random_points(500)).norm(dim=-1)
     torch.testing.assert_close(norms, torch.ones_like(norms))
 
+    corner = zones.outward_direction(torch.tensor([[100.0, 100.0]]))  # the exterior bisector
+    torch.testing.assert_close(corner, torch.tensor([[0.5**0.5, 0.5**0.5]]), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["star_union", "l_shape", "adjacent_rects", "narrow_gap"])
+def test_outward_direction_of_a_point_does_not_depend_on_the_others(name: str) -> None:
+    """A batch with a point on the boundary (a vertex, an edge) takes the boundary's rules for
+    it; the points off it get the same directions as in a batch without one."""
+    zones = ZoneSet.from_polygons(CASES[name])
+    vertices = torch.as_tensor(np.concatenate(zones.polygons))
+    on_edges = (vertices + vertices.roll(-1, dims=0)) / 2
+    points = torch.cat([random_points(200), vertices, on_edges])
+    each = torch.cat([zones.outward_direction(point[None]) for point in points])
+    assert torch.equal(zones.outward_direction(points), each)
+    assert torch.equal(zones.outward_direction(points[:200]), each[:200])
+
 
 def test_queries_keep_batch_shape_and_dtype() -> None:
     zones = ZoneSet.from_polygons([L_SHAPE])

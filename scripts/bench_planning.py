@@ -6,7 +6,9 @@ prints, each also as a ratio to torch eager in the same run:
   - one U-Net forward at batch 1 and at batch 25 (median of `--forwards`);
   - one plan at batch 1 with the body-safe hooks: DDIM 10 (`ddim10_r_g10_p_safe`) and DDPM 100
     (`r_g10_p_safe`), median of `--plans`, in a scene with the paper's 0.2 centre zone;
-  - the hooks' share of a DDIM plan: 1 - (the same sampler without hooks) / (with them).
+  - the hooks' share of a DDIM plan: 1 - (the same sampler without hooks) / (with them);
+  - for a fast runtime, the torch operations one plan makes around the network: a count, which
+    a machine's noise does not move as it moves the times.
 Every fast path is first checked against torch on the same inputs (max abs difference of a
 forward). The shipped policy; run it on an idle machine. Prints; asserts nothing.
 
@@ -24,6 +26,7 @@ from collections.abc import Callable
 
 import numpy as np
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
@@ -85,8 +88,9 @@ def compiled_denoiser(policy: DiffusionPolicy):
 
 @torch.inference_mode()
 def measure(policy: DiffusionPolicy, configs: dict, history: torch.Tensor, zones,
-            args: argparse.Namespace, name: str) -> dict[str, float]:
-    """ms per cell for the runtime set on `policy` (its `fast`, None: torch eager)."""
+            args: argparse.Namespace, name: str) -> dict[str, float | int]:
+    """ms per cell for the runtime set on `policy` (its `fast`, None: torch eager); on a fast
+    runtime also the operations per plan."""
     config, cells = policy.config, {}
     for batch in (1, 25):
         sample = torch.randn(batch, config.horizon, config.action_dim)
@@ -104,7 +108,29 @@ def measure(policy: DiffusionPolicy, configs: dict, history: torch.Tensor, zones
         count = args.plans if "DDIM" in label else max(3, args.plans // 3)
         cells[f"plan, {label}"] = median_ms(
             lambda p=planner, g=generator: p.plan(history, zones, None, g), count, warm=1)
+        if policy.fast is not None:  # what runs around the network, counted: no clock's noise
+            cells[f"torch operations, {label}"] = operations(
+                lambda p=planner: p.plan(history, zones, None, torch.Generator().manual_seed(0)))
     return cells
+
+
+class _OperationCount(TorchDispatchMode):
+    """Counts the torch operations dispatched while it is active."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.count = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.count += 1
+        return func(*args, **(kwargs or {}))
+
+
+def operations(call: Callable[[], object]) -> int:
+    """How many torch operations one `call` makes."""
+    with _OperationCount() as counter:
+        call()
+    return counter.count
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -137,6 +163,9 @@ def main(argv: list[str] | None = None) -> int:
             finally:
                 policy.fast = None
             for label, ms in cells.items():
+                if label.startswith("torch operations"):
+                    print(f"  {name:12s} {label:32s} {ms:8d}")
+                    continue
                 ratio = "" if name == "torch eager" else f"  ({ms / base[label]:.2f} x torch)"
                 base.setdefault(label, ms)
                 print(f"  {name:12s} {label:32s} {ms:8.2f} ms{ratio}")

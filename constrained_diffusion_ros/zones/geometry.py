@@ -144,6 +144,14 @@ class _Columns(NamedTuple):
     length2: Tensor
 
 
+class _Planes(NamedTuple):
+    """`ZoneSet._planes`: points' x and y (..., 1), and y - each edge start's y (..., E)."""
+
+    px: Tensor
+    py: Tensor
+    ry: Tensor
+
+
 class _Outward(NamedTuple):
     """`ZoneSet._outward`: distance to the boundary, point - nearest boundary point, inside,
     the outward unit direction, on the boundary; with the vertices looked up, whether the
@@ -363,8 +371,11 @@ class ZoneSet(RestrictedArea):
         p, dtype = self._prepare(points)
         if self.is_empty:
             return torch.zeros(p.shape[:-1], dtype=torch.bool, device=p.device), None
-        inside = self._inside(p)
-        return inside, (self._outward(p, inside).unit.to(dtype) if inside.any() else None)
+        planes = self._planes(p)
+        inside = self._inside(p, planes)
+        if not inside.any():
+            return inside, None
+        return inside, self._outward(p, inside, planes=planes).unit.to(dtype)
 
     def project_out(self, points: Tensor, margin: float = 0.0, passes: int = 2) -> Tensor:
         """Move points inside, or less than `margin` outside, to clearance `margin`; keep others.
@@ -468,27 +479,39 @@ class ZoneSet(RestrictedArea):
                                           (d * d).sum(dim=-1))
         return self._tensors[key]
 
-    def _inside(self, p: Tensor) -> Tensor:
+    def _planes(self, p: Tensor) -> _Planes:
+        """The points' x and y (..., 1), and their y seen from every edge's start (..., E):
+        what the ray test and the distances share, taken once for both."""
+        c = self._edge_columns(p.device, p.dtype)
+        px, py = p.unsqueeze(-2).unbind(-1)
+        return _Planes(px, py, py - c.ay)
+
+    def _inside(self, p: Tensor, planes: _Planes | None = None) -> Tensor:
         """Even-odd ray test along +x against all edges (half-open at vertices)."""
         c = self._edge_columns(p.device, p.dtype)
-        px, py = p.unsqueeze(-2).unbind(-1)  # (..., 1) each
+        px, py, ry = self._planes(p) if planes is None else planes
         straddle = (c.ay > py) != (c.ay_end > py)
         # An edge that straddles has dy != 0; the others' crossings are not counted.
-        x_cross = c.ax + (py - c.ay) * c.dx / c.dy_nonzero
+        x_cross = c.ax + ry * c.dx / c.dy_nonzero
         crossings = (straddle & (px < x_cross)).sum(dim=-1)
         return (crossings + 1 if self._inside_dropped else crossings) % 2 == 1
 
-    def _nearest(self, p: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """Distance to the boundary, (point - nearest boundary point), nearest edge, and where
-        on that edge the nearest point lies (0: start vertex, 1: end vertex).
-
-        Works on x and y planes (..., E) separately: reductions over a size-2 axis are slow.
-        """
+    def _offsets(self, p: Tensor, planes: _Planes | None = None
+                 ) -> tuple[Tensor, Tensor, Tensor]:
+        """(point - the nearest point of each edge) as x and y planes (..., E), and where on
+        the edge that nearest point lies, t (..., E) (0: start vertex, 1: end vertex).
+        Planes, not (..., E, 2): reductions over a size-2 axis are slow."""
         c = self._edge_columns(p.device, p.dtype)
-        px, py = p.unsqueeze(-2).unbind(-1)
-        rx, ry = px - c.ax, py - c.ay  # (..., E)
+        px, _, ry = self._planes(p) if planes is None else planes
+        rx = px - c.ax
         t = ((rx * c.dx + ry * c.dy) / c.length2).clamp(0.0, 1.0)
-        wx, wy = rx - t * c.dx, ry - t * c.dy
+        return rx - t * c.dx, ry - t * c.dy, t
+
+    def _nearest(self, p: Tensor, planes: _Planes | None = None
+                 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Distance to the boundary, (point - nearest boundary point), nearest edge, and where
+        on that edge the nearest point lies (0: start vertex, 1: end vertex)."""
+        wx, wy, t = self._offsets(p, planes)
         dist2, idx = (wx * wx + wy * wy).min(dim=-1)
         pick = idx.unsqueeze(-1)
         away = torch.cat([wx.gather(-1, pick), wy.gather(-1, pick)], dim=-1)
@@ -497,10 +520,13 @@ class ZoneSet(RestrictedArea):
     def _signed(self, p: Tensor) -> Tensor:
         if self.is_empty:
             return torch.full(p.shape[:-1], torch.inf, dtype=p.dtype, device=p.device)
-        dist, *_ = self._nearest(p)
+        planes = self._planes(p)
+        wx, wy, _ = self._offsets(p, planes)  # the distance only: no nearest edge picked
+        dist = (wx * wx + wy * wy).amin(dim=-1).sqrt()
         # A boundary point the even-odd test counts inside is inside (negative), not at -0.0:
         # else project_out(margin=0) would leave it where `contains` still sees it.
-        return torch.where(self._inside(p), -dist.clamp_min(torch.finfo(dist.dtype).tiny), dist)
+        return torch.where(self._inside(p, planes),
+                           -dist.clamp_min(torch.finfo(dist.dtype).tiny), dist)
 
     def _query(self, p: Tensor, inside: Tensor | None = None
                ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -514,14 +540,15 @@ class ZoneSet(RestrictedArea):
                            o.unit)
         return torch.where(o.inside, -o.dist, o.dist), o.unit, p - o.away, step
 
-    def _outward(self, p: Tensor, inside: Tensor | None = None, vertices: bool = False
-                 ) -> _Outward:
+    def _outward(self, p: Tensor, inside: Tensor | None = None, vertices: bool = False,
+                 planes: _Planes | None = None) -> _Outward:
         """The outward unit direction (`outward_direction`) and what it is made of. The
         nearest edge's vertex steps are looked up only with `vertices` or where a point lies
         on the boundary (where they decide the direction): a guidance hook asks at every
         denoising step, mostly about points off the boundary."""
-        dist, away, idx, t = self._nearest(p)
-        inside = self._inside(p) if inside is None else inside
+        planes = self._planes(p) if planes is None else planes
+        dist, away, idx, t = self._nearest(p, planes)
+        inside = self._inside(p, planes) if inside is None else inside
         tol = 1024 * torch.finfo(p.dtype).eps * self._scale  # below this, `away` is mostly noise
         on_boundary = (dist <= tol)[..., None]
         vec = torch.where(inside[..., None], -away, away)

@@ -91,7 +91,7 @@ class ConstrainedPlanner:
     def sampler(self) -> DenoisingSampler:
         """Built at the first plan, or by `prepare_sampling`: a planner that only guards
         setpoints, as the live node's does while its planning process plans, never builds a
-        scheduler and so never imports diffusers (most of two seconds at start-up)."""
+        scheduler and so never imports diffusers, a slow import at start-up."""
         c = self.config
         return DenoisingSampler(self.policy, c.sampler, c.denoising_steps, c.timestep_spacing,
                                 c.eta)

@@ -1,9 +1,9 @@
 """Noise schedulers (diffusers) built from a policy config, so training and sampling agree.
 
-diffusers is imported when a scheduler is first built, not with this module: importing it takes
-most of two seconds (it imports torch's compiler stack), which a process that only checks
-configurations or guards setpoints (the live policy node, whose plans come from its planning
-process) need not spend at start-up.
+diffusers is imported when a scheduler is first built, not with this module: its import is slow
+(it imports torch's compiler stack), and a process that only checks configurations or guards
+setpoints (the live policy node, whose plans come from its planning process) need not wait for
+it at start-up.
 """
 
 from __future__ import annotations

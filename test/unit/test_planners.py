@@ -198,8 +198,8 @@ print(sorted(m for m in ("diffusers", "torch._dynamo") if m in sys.modules))
 
 def test_a_planner_that_only_guards_does_not_import_diffusers() -> None:
     """The live node guards setpoints while its planning process plans: it loads the policy and
-    builds its planner without importing diffusers and torch's compiler (most of two seconds
-    before its first setpoint); they come when the planner first needs its sampler."""
+    builds its planner without importing diffusers and torch's compiler (slow imports before its
+    first setpoint); they come when the planner first needs its sampler."""
     result = subprocess.run([sys.executable, "-c", GUARD_ONLY], capture_output=True, text=True,
                             timeout=120, env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert result.returncode == 0, result.stderr

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from hypothesis import assume, example, given, settings
+from hypothesis import HealthCheck, assume, example, given, settings
 from hypothesis import strategies as st
 
 from constrained_diffusion_ros.planning.config import ConstraintConfig
@@ -147,6 +147,12 @@ def test_a_shortened_step_across_the_corner_keeps_out_of_the_grown_zone() -> Non
 BOX = (200.0, 200.0, 400.0, 400.0)  # ZONE's corners
 
 
+# The properties below hold from states whose held setpoint is safe (`assume`): about 4 in 10
+# of those drawn. Hypothesis's first draws, its simplest, can be filtered far more often, and its
+# health check then fails a run that would go on to check hundreds of states.
+SAFE_STATES_ONLY = [HealthCheck.filter_too_much]
+
+
 @st.composite
 def near_the_grown_zone(draw) -> tuple[float, float]:
     """A point anywhere, or (where a mistake would hide) within 5 px of INFLATED's edge."""
@@ -241,7 +247,7 @@ def test_the_old_shield_parks_in_front_of_a_post_and_the_new_one_slides_past_it(
     assert slid[-1, 0] > 500 and abs(slid[-1, 1] - 300) < 5  # past it, back on its line
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=300, deadline=None, suppress_health_check=SAFE_STATES_ONLY)
 @given(st.tuples(st.floats(0, 512), st.floats(0, 512)), near_the_grown_zone(),
        near_the_grown_zone(), st.tuples(st.floats(-400, 400), st.floats(-400, 400)))
 def test_the_sliding_shield_never_lets_the_disc_into_the_grown_zone_within_the_horizon(
@@ -313,7 +319,7 @@ def test_setpoints_that_reach_the_robot_a_tick_late_still_keep_the_disc_out(seed
     assert drive_with_late_setpoints(seed, late=True) >= 0
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=300, deadline=None, suppress_health_check=SAFE_STATES_ONLY)
 @given(st.tuples(st.floats(0, 512), st.floats(0, 512)), near_the_grown_zone(),
        near_the_grown_zone(), st.tuples(st.floats(-400, 400), st.floats(-400, 400)))
 def test_a_setpoint_the_shield_lets_through_is_safe_even_if_it_takes_over_a_tick_late(
@@ -336,7 +342,7 @@ def test_a_setpoint_the_shield_lets_through_is_safe_even_if_it_takes_over_a_tick
         assert INFLATED.signed_distance(path).min() >= shield.margin - 1e-3
 
 
-@settings(max_examples=400, deadline=None)
+@settings(max_examples=400, deadline=None, suppress_health_check=SAFE_STATES_ONLY)
 @given(st.tuples(st.floats(0, 512), st.floats(0, 512)), near_the_grown_zone(),
        near_the_grown_zone(), st.tuples(st.floats(-400, 400), st.floats(-400, 400)))
 # Found by a search: the shield that escaped unchecked took the disc 0.5, 1.7 and 2.1 px in.

@@ -63,7 +63,7 @@ def load_policy(directory: str | Path, device: str | torch.device = "cpu") -> Di
     except (FileNotFoundError, SafetensorError, OSError) as error:
         raise ValueError(f"cannot read weights {path}: {error}") from error
     with torch.device("meta"):  # the network only: tensor arithmetic on meta tensors (the
-        # normalisers') runs torch's Python reference kernels, which import its compiler (2 s)
+        # normalisers') runs torch's Python reference kernels, which import its slow compiler
         expected = {name: tuple(tensor.shape)
                     for name, tensor in build_unet(config).state_dict().items()}
     missing = sorted(set(expected) - set(stored))

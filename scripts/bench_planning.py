@@ -6,7 +6,9 @@ prints, each also as a ratio to torch eager in the same run:
   - one U-Net forward at batch 1 and at batch 25 (median of `--forwards`);
   - one plan at batch 1 with the body-safe hooks: DDIM 10 (`ddim10_r_g10_p_safe`) and DDPM 100
     (`r_g10_p_safe`), median of `--plans`, in a scene with the paper's 0.2 centre zone;
-  - the hooks' share of a DDIM plan: 1 - (the same sampler without hooks) / (with them);
+  - the same two samplers without hooks (`ddim10_none`, `none`): the network's and the
+    sampler's part, a floor for the plans above on this machine;
+  - the hooks' share of each plan: 1 - (the sampler without hooks) / (with them);
   - for a fast runtime, the torch operations one plan makes around the network: a count, which
     a machine's noise does not move as it moves the times.
 Every fast path is first checked against torch on the same inputs (max abs difference of a
@@ -39,7 +41,8 @@ from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from sim_bridge.scene import block_keypoints, observation, seeded_state
 
 PLANS = {"DDIM 10 body-safe": "ddim10_r_g10_p_safe", "DDPM 100 body-safe": "r_g10_p_safe"}
-UNHOOKED = "ddim10_none"  # the DDIM sampler with no hooks: what the hooks add is the rest
+UNHOOKED = {"DDIM 10 no hooks": "ddim10_none", "DDPM 100 no hooks": "none"}  # what the
+# hooks add is the rest
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -102,7 +105,7 @@ def measure(policy: DiffusionPolicy, configs: dict, history: torch.Tensor, zones
             print(f"  {name}: max abs difference from torch in a forward {worst:.1e}")
         cells[f"forward, batch {batch}"] = median_ms(
             lambda s=sample, n=network: n(s, 0), args.forwards)
-    for label, key in {**PLANS, "DDIM 10 no hooks": UNHOOKED}.items():
+    for label, key in {**PLANS, **UNHOOKED}.items():
         planner = ConstrainedPlanner(policy, configs[key], PUSHT_ROBOT)
         generator = torch.Generator().manual_seed(0)
         count = args.plans if "DDIM" in label else max(3, args.plans // 3)
@@ -169,8 +172,9 @@ def main(argv: list[str] | None = None) -> int:
                 ratio = "" if name == "torch eager" else f"  ({ms / base[label]:.2f} x torch)"
                 base.setdefault(label, ms)
                 print(f"  {name:12s} {label:32s} {ms:8.2f} ms{ratio}")
-            share = 1 - cells["plan, DDIM 10 no hooks"] / cells["plan, DDIM 10 body-safe"]
-            print(f"  {name:12s} {'hooks share, DDIM 10 body-safe':32s} {100 * share:7.0f} %")
+            for plan, unhooked in zip(PLANS, UNHOOKED, strict=True):
+                share = 1 - cells[f"plan, {unhooked}"] / cells[f"plan, {plan}"]
+                print(f"  {name:12s} {f'hooks share, {plan}':32s} {100 * share:7.0f} %")
     return 0
 
 

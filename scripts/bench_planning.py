@@ -12,7 +12,10 @@ prints, each also as a ratio to torch eager in the same run:
   - for a fast runtime, the torch operations one plan makes around the network: a count, which
     a machine's noise does not move as it moves the times.
 Every fast path is first checked against torch on the same inputs (max abs difference of a
-forward). The shipped policy; run it on an idle machine. Prints; asserts nothing.
+forward). The cells of a thread count are timed round-robin (a plan at a time, forwards
+a tenth of them at a time, each visit after one untimed call), so a machine whose speed drifts
+slows them alike. The shipped policy; run it on an idle machine.
+Prints; asserts nothing.
 
   OMP_NUM_THREADS=1 .venv/bin/python scripts/bench_planning.py
 """
@@ -25,6 +28,7 @@ import statistics
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -59,15 +63,43 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def median_ms(call: Callable[[], object], count: int, warm: int = 3) -> float:
-    for _ in range(warm):
-        call()
-    times = []
-    for _ in range(count):
-        started = time.perf_counter()
-        call()
-        times.append(time.perf_counter() - started)
-    return 1000 * statistics.median(times)
+@dataclass
+class Cell:
+    """One timed figure: `call` with the network on `fast` (None: torch eager), `count` times
+    in visits of `burst` calls."""
+
+    variant: str
+    label: str
+    fast: object
+    call: Callable[[], object]
+    count: int
+    burst: int = 1
+    times: list[float] = field(default_factory=list)
+
+    @property
+    def median_ms(self) -> float:
+        return 1000 * statistics.median(self.times)
+
+
+def time_round_robin(policy: DiffusionPolicy, cells: list[Cell]) -> None:
+    """Times the cells in turn, a visit of each per round: one untimed call (the caches the
+    cell before left it, refilled), then `burst` timed ones. A machine whose speed drifts, as
+    a shared VM's does by tens of percent within minutes, then slows every cell alike, and
+    the ratios and the hooks' shares hold."""
+    try:
+        for round_ in range(max(-(-cell.count // cell.burst) for cell in cells)):
+            for cell in cells:
+                timed = min(cell.burst, cell.count - round_ * cell.burst)
+                if timed <= 0:
+                    continue
+                policy.fast = cell.fast
+                cell.call()
+                for _ in range(timed):
+                    started = time.perf_counter()
+                    cell.call()
+                    cell.times.append(time.perf_counter() - started)
+    finally:
+        policy.fast = None
 
 
 def scene_observation(seed: int = 100000) -> torch.Tensor:
@@ -90,30 +122,39 @@ def compiled_denoiser(policy: DiffusionPolicy):
 
 
 @torch.inference_mode()
-def measure(policy: DiffusionPolicy, configs: dict, history: torch.Tensor, zones,
-            args: argparse.Namespace, name: str) -> dict[str, float | int]:
-    """ms per cell for the runtime set on `policy` (its `fast`, None: torch eager); on a fast
-    runtime also the operations per plan."""
-    config, cells = policy.config, {}
-    for batch in (1, 25):
-        sample = torch.randn(batch, config.horizon, config.action_dim)
-        cond = torch.rand(batch, config.global_cond_dim) * 2 - 1
-        timestep = torch.tensor([50])
-        network = policy.denoiser(timestep, cond)  # a fast runtime's FiLM computed here, once
-        if policy.fast is not None and batch == 1:
-            worst = float((network(sample, 0) - policy.unet(sample, timestep, cond)).abs().max())
-            print(f"  {name}: max abs difference from torch in a forward {worst:.1e}")
-        cells[f"forward, batch {batch}"] = median_ms(
-            lambda s=sample, n=network: n(s, 0), args.forwards)
-    for label, key in {**PLANS, **UNHOOKED}.items():
-        planner = ConstrainedPlanner(policy, configs[key], PUSHT_ROBOT)
-        generator = torch.Generator().manual_seed(0)
-        count = args.plans if "DDIM" in label else max(3, args.plans // 3)
-        cells[f"plan, {label}"] = median_ms(
-            lambda p=planner, g=generator: p.plan(history, zones, None, g), count, warm=1)
-        if policy.fast is not None:  # what runs around the network, counted: no clock's noise
-            cells[f"torch operations, {label}"] = operations(
-                lambda p=planner: p.plan(history, zones, None, torch.Generator().manual_seed(0)))
+def cells_of(policy: DiffusionPolicy, name: str, fast: object, configs: dict,
+             history: torch.Tensor, zones, args: argparse.Namespace) -> list[Cell]:
+    """The cells of one runtime (`fast` on `policy`; None: torch eager), after its check
+    against torch and, on a fast runtime, the torch operations each plan makes around the
+    network (a count, which no machine's noise moves)."""
+    config, cells, policy.fast = policy.config, [], fast
+    try:
+        for batch in (1, 25):
+            sample = torch.randn(batch, config.horizon, config.action_dim)
+            cond = torch.rand(batch, config.global_cond_dim) * 2 - 1
+            timestep = torch.tensor([50])
+            network = policy.denoiser(timestep, cond)  # a fast runtime's FiLM computed once
+            if fast is not None and batch == 1:
+                worst = float((network(sample, 0) - policy.unet(sample, timestep, cond))
+                              .abs().max())
+                print(f"  {name}: max abs difference from torch in a forward {worst:.1e}")
+            cells.append(Cell(name, f"forward, batch {batch}", fast,
+                              lambda s=sample, n=network: n(s, 0), args.forwards,
+                              burst=max(1, args.forwards // 10)))
+        for label, key in {**PLANS, **UNHOOKED}.items():
+            planner = ConstrainedPlanner(policy, configs[key], PUSHT_ROBOT)
+            generator = torch.Generator().manual_seed(0)
+            count = args.plans if "DDIM" in label else max(3, args.plans // 3)
+            cells.append(Cell(name, f"plan, {label}", fast,
+                              lambda p=planner, g=generator: p.plan(history, zones, None, g),
+                              count))
+            if fast is not None:  # counted warm: caches a first plan builds are not a plan's
+                planner.plan(history, zones, None, torch.Generator().manual_seed(0))
+                ops = operations(lambda p=planner: p.plan(history, zones, None,
+                                                          torch.Generator().manual_seed(0)))
+                print(f"  {name:12s} {f'torch operations, {label}':32s} {ops:8d}")
+    finally:
+        policy.fast = None
     return cells
 
 
@@ -155,25 +196,22 @@ def main(argv: list[str] | None = None) -> int:
         if args.compile:
             variants["torch.compile"] = compiled_denoiser(policy)
         print(f"\n== {threads} thread(s) ==")
-        base: dict[str, float] = {}
+        cells: list[Cell] = []
         for name, fast in variants.items():
             if isinstance(fast, str):
                 print(f"  {name}: not measured ({fast})")
-                continue
-            policy.fast = fast
-            try:
-                cells = measure(policy, configs, history, zones, args, name)
-            finally:
-                policy.fast = None
-            for label, ms in cells.items():
-                if label.startswith("torch operations"):
-                    print(f"  {name:12s} {label:32s} {ms:8d}")
-                    continue
+            else:
+                cells += cells_of(policy, name, fast, configs, history, zones, args)
+        with torch.inference_mode():
+            time_round_robin(policy, cells)
+        base = {cell.label: cell.median_ms for cell in cells if cell.fast is None}
+        for name in dict.fromkeys(cell.variant for cell in cells):
+            mine = {cell.label: cell.median_ms for cell in cells if cell.variant == name}
+            for label, ms in mine.items():
                 ratio = "" if name == "torch eager" else f"  ({ms / base[label]:.2f} x torch)"
-                base.setdefault(label, ms)
                 print(f"  {name:12s} {label:32s} {ms:8.2f} ms{ratio}")
             for plan, unhooked in zip(PLANS, UNHOOKED, strict=True):
-                share = 1 - cells[f"plan, {unhooked}"] / cells[f"plan, {plan}"]
+                share = 1 - mine[f"plan, {unhooked}"] / mine[f"plan, {plan}"]
                 print(f"  {name:12s} {f'hooks share, {plan}':32s} {100 * share:7.0f} %")
     return 0
 

@@ -221,7 +221,9 @@ class CommittedPrefix:
         if self.weights.shape not in (self.known.shape[1:2], self.known.shape[:2]):
             raise ValueError(f"weights {tuple(self.weights.shape)} must match the known "
                              f"waypoints {tuple(self.known.shape[:2])}")
-        self._noise: Tensor | None = None
+        # Known waypoints, their noise, weights and 1 - weights in the sample's dtype: the
+        # noise drawn at the first update, and none of them changing from step to step.
+        self._held: tuple[Tensor, Tensor, Tensor, Tensor] | None = None
 
     def repeated(self, times: int) -> CommittedPrefix:
         """The same prefix for `times` candidates of each row, rows kept together."""
@@ -230,13 +232,14 @@ class CommittedPrefix:
         return CommittedPrefix(self.known.repeat_interleave(times, dim=0), weights)
 
     def __call__(self, sample: Tensor, step: DenoisingStep) -> Tensor:
-        if self._noise is None:
-            self._noise = torch.randn(self.known.shape, generator=step.generator)
-        held = step.noised(self.known.to(sample), self._noise.to(sample))
-        count, w = self.known.shape[1], self.weights.to(sample)
-        w = (w if w.dim() == 2 else w[None])[..., None]
+        if self._held is None:
+            w = self.weights.to(sample)
+            w = (w if w.dim() == 2 else w[None])[..., None]
+            noise = torch.randn(self.known.shape, generator=step.generator).to(sample)
+            self._held = self.known.to(sample), noise, w, 1.0 - w
+        known, noise, w, rest = self._held
         out = sample.clone()
-        out[:, :count] = w * held + (1.0 - w) * sample[:, :count]
+        out[:, :known.shape[1]] = w * step.noised(known, noise) + rest * sample[:, :known.shape[1]]
         return out
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 import torch
 
@@ -21,10 +21,7 @@ from constrained_diffusion_ros.policy.schedulers import (
     TimestepSpacing,
     make_scheduler,
 )
-from constrained_diffusion_ros.sampling.updates import ScheduledUpdates
-
-if TYPE_CHECKING:  # imported where a scheduler is built (policy/schedulers.py)
-    from diffusers import SchedulerMixin
+from constrained_diffusion_ros.sampling.updates import Noising, ScheduledUpdates
 
 
 @dataclass(frozen=True)
@@ -37,7 +34,7 @@ class DenoisingStep:
     generator: torch.Generator | None
     normalizer: MinMaxNormalizer  # action normaliser: workspace px <-> [-1, 1]
     next_timestep: int | None = None  # the noise level the sample is at now; None: clean
-    scheduler: SchedulerMixin | None = None
+    noising: Noising | None = None  # the scheduler's add_noise at that level
 
     @property
     def progress(self) -> float:
@@ -48,11 +45,9 @@ class DenoisingStep:
         """Workspace-pixel actions as a sample at this point of the loop holds them: clean
         ones noised (with `noise`, in the normalised space) to the level the update reached;
         unchanged after the last update."""
-        if self.next_timestep is None or self.scheduler is None:
+        if self.next_timestep is None or self.noising is None:
             return clean
-        level = torch.tensor(self.next_timestep)
-        normal = self.scheduler.add_noise(self.normalizer.normalize(clean), noise, level)
-        return self.normalizer.unnormalize(normal)
+        return self.normalizer.unnormalize(self.noising(self.normalizer.normalize(clean), noise))
 
 
 class SampleHook(Protocol):
@@ -115,7 +110,7 @@ class DenoisingSampler:
             sample = self.updates.apply(index, noise, sample, generator)
             if hooks:
                 step = DenoisingStep(index, len(timesteps), levels[index], generator, normalizer,
-                                     levels[index + 1], self.scheduler)
+                                     levels[index + 1], self.updates.noising[index])
                 workspace = normalizer.unnormalize(sample.cpu())
                 for hook in hooks:
                     workspace = hook(workspace, step)

@@ -39,9 +39,27 @@ class Update:
                 object.__setattr__(self, name, float(value))
 
 
+@dataclass(frozen=True)
+class Noising:
+    """The scheduler's `add_noise` at one level, for float32 samples: clean samples and a
+    noise draw -> `sqrt_alpha * clean + sqrt_one_minus * noise`, its scalars taken once as
+    Update's are (the same products, bit for bit)."""
+
+    sqrt_alpha: float  # alpha_prod ** 0.5
+    sqrt_one_minus: float  # (1 - alpha_prod) ** 0.5
+
+    def __post_init__(self) -> None:
+        for name, value in vars(self).items():
+            object.__setattr__(self, name, float(value))
+
+    def __call__(self, clean: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        return self.sqrt_alpha * clean + self.sqrt_one_minus * noise
+
+
 class ScheduledUpdates:
     """`apply(index, model_output, sample, generator)`: the update of the schedule's step
-    `index`, as `scheduler.step(...).prev_sample`."""
+    `index`, as `scheduler.step(...).prev_sample`; `noising[index]`: `add_noise` at the level
+    that update leaves the sample at (None after the last: clean)."""
 
     def __init__(self, scheduler: DDPMScheduler | DDIMScheduler, eta: float = 0.0) -> None:
         from diffusers import DDIMScheduler, DDPMScheduler
@@ -58,6 +76,11 @@ class ScheduledUpdates:
         else:
             raise ValueError(f"no precomputed updates for {type(scheduler).__name__} "
                              f"({config.variance_type})")
+        # After update i the sample is at the level of timestep i + 1 (clean after the last).
+        alphas = scheduler.alphas_cumprod.to(torch.float32)  # add_noise's, in the samples' dtype
+        self.noising: list[Noising | None] = [
+            Noising(alphas[t] ** 0.5, (1 - alphas[t]) ** 0.5)
+            for t in scheduler.timesteps[1:].tolist()] + [None]
 
     @staticmethod
     def _ddpm(scheduler: DDPMScheduler, t: int) -> Update:

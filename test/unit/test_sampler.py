@@ -206,3 +206,20 @@ def test_the_precomputed_updates_are_the_schedulers_own_bit_for_bit(
         fast = updates.apply(index, output, fast, ours)
         assert torch.equal(fast, reference), index
     assert not torch.equal(fast, torch.zeros_like(fast))
+
+
+@pytest.mark.parametrize(("kind", "steps"), [("ddpm", 100), ("ddim", 10)])
+def test_the_precomputed_noising_is_the_schedulers_add_noise_bit_for_bit(
+        tiny_policy: DiffusionPolicy, kind: str, steps: int) -> None:
+    """What the prefix hook holds its known waypoints to after each update: the scheduler's own
+    `add_noise` at the level that update reached, to the last bit; nothing after the last."""
+    sampler = DenoisingSampler(tiny_policy, kind, steps)
+    generator = torch.Generator().manual_seed(4)
+    clean, noise = (torch.randn(3, 16, 2, generator=generator) for _ in range(2))
+    levels = [*sampler.scheduler.timesteps.tolist()[1:], None]
+    for noising, level in zip(sampler.updates.noising, levels, strict=True):
+        if level is None:
+            assert noising is None
+        else:
+            expected = sampler.scheduler.add_noise(clean, noise, torch.tensor([level]))
+            assert torch.equal(noising(clean, noise), expected), level

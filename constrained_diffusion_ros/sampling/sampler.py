@@ -45,7 +45,7 @@ class DenoisingStep:
         """Workspace-pixel actions as a sample at this point of the loop holds them: clean
         ones noised (with `noise`, in the normalised space) to the level the update reached;
         unchanged after the last update."""
-        if self.next_timestep is None or self.noising is None:
+        if self.noising is None:  # after the last update (or a step made by hand)
             return clean
         return self.normalizer.unnormalize(self.noising(self.normalizer.normalize(clean), noise))
 

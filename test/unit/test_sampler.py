@@ -212,14 +212,20 @@ def test_the_precomputed_updates_are_the_schedulers_own_bit_for_bit(
 def test_the_precomputed_noising_is_the_schedulers_add_noise_bit_for_bit(
         tiny_policy: DiffusionPolicy, kind: str, steps: int) -> None:
     """What the prefix hook holds its known waypoints to after each update: the scheduler's own
-    `add_noise` at the level that update reached, to the last bit; nothing after the last."""
+    `add_noise` at the level that update reached, to the last bit, as each hook is handed it
+    (`DenoisingStep.noised`, in workspace px); unchanged after the last."""
     sampler = DenoisingSampler(tiny_policy, kind, steps)
     generator = torch.Generator().manual_seed(4)
-    clean, noise = (torch.randn(3, 16, 2, generator=generator) for _ in range(2))
-    levels = [*sampler.scheduler.timesteps.tolist()[1:], None]
-    for noising, level in zip(sampler.updates.noising, levels, strict=True):
-        if level is None:
-            assert noising is None
-        else:
-            expected = sampler.scheduler.add_noise(clean, noise, torch.tensor([level]))
-            assert torch.equal(noising(clean, noise), expected), level
+    clean, noise = torch.rand(3, 16, 2, generator=generator) * 512, torch.randn(3, 16, 2)
+    seen: list[DenoisingStep] = []
+    sampler.sample(observations(1), torch.Generator().manual_seed(0),
+                   [lambda sample, step: seen.append(step) or sample])
+    assert [step.next_timestep for step in seen] == [*sampler.scheduler.timesteps.tolist()[1:],
+                                                     None]
+    normalizer = tiny_policy.action_normalizer
+    for step in seen[:-1]:
+        level = torch.tensor([step.next_timestep])
+        expected = normalizer.unnormalize(
+            sampler.scheduler.add_noise(normalizer.normalize(clean), noise, level))
+        assert torch.equal(step.noised(clean, noise), expected), step.index
+    assert torch.equal(seen[-1].noised(clean, noise), clean)

@@ -3,7 +3,8 @@
 Two modes. `lockstep` (default): a setpoint stamped with the current observation's stamp is
 exactly one control step, so a trial is deterministic however slow the policy is; setpoints
 with any other stamp (duplicates of answers already used) are dropped. `realtime`: a timer
-steps at `rate_hz` with the latest setpoint, as a real robot would, holding the last one.
+steps at `rate_hz` with the latest setpoint, as a real robot would, holding the last one; a
+setpoint stamped later than the newest observation of this run is dropped (`stale_setpoint`).
 
 Every observation is stamped with simulated time (control step * 0.1 s), which also goes out on
 `/clock` (nodes started with `use_sim_time:=true` run on it), and published as four messages
@@ -67,6 +68,20 @@ def setpoint_fault(msg: PointStamped) -> str | None:
     return None
 
 
+def stale_setpoint(msg: PointStamped, newest_ns: int) -> bool:
+    """Realtime: whether a setpoint is stamped later than the newest observation published in
+    this run (`newest_ns`), so answers none of this run's: it is for the run before a reset,
+    whose stamps went on to steps this run has not reached (or it is stamped on another clock).
+
+    The rule's limits: stamps are the only evidence, so the old run's setpoints are told apart
+    only while the new run's stamps are below theirs. One stamped at or before the newest
+    observation passes: the old run's stamp 0 after a reset at step 0, or an old setpoint that
+    arrives once the new run has passed its stamp (a reset after a few steps, a long delay).
+    Unstamped setpoints (stamp 0) always pass.
+    """
+    return stamp_nanoseconds(msg.header.stamp) > newest_ns
+
+
 PARAMETERS = (
     Param("seed", 100000, "scene of the reference environment; the reset service re-reads it",
           low=0),
@@ -93,6 +108,7 @@ class SimNode(Node):
         self.step_count = 0
         self.target: tuple[float, float] | None = None  # realtime: the setpoint held
         self.running = False  # false until the first reset when autostart is false
+        self.stale_setpoints = 0  # realtime: dropped, stamped for another run
         self._limit_logged = False
         self._last_publish = 0.0
 
@@ -167,6 +183,15 @@ class SimNode(Node):
             self.get_logger().warning(f"ignoring setpoint: {fault}")
             return
         if self.mode == "realtime":
+            newest = stamp_nanoseconds(stamp_of_step(self.step_count, CONTROL_HZ))
+            if stale_setpoint(msg, newest):
+                self.stale_setpoints += 1
+                self.get_logger().warning(
+                    f"dropped {self.stale_setpoints} setpoint(s) stamped later than the newest "
+                    f"observation ({newest * 1e-9:.1f} s): another run's, or not simulated "
+                    f"time; this one {stamp_nanoseconds(msg.header.stamp) * 1e-9:.1f} s",
+                    throttle_duration_sec=1.0)
+                return
             self.target = (msg.point.x, msg.point.y)
             return
         current = stamp_of_step(self.step_count, CONTROL_HZ)

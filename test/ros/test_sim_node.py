@@ -103,6 +103,55 @@ def test_sim_without_autostart_waits_for_reset(ros, processes):
     assert (received[0].point.x, received[0].point.y) == tuple(seeded_state(SEED + 3)[:2])
 
 
+def test_realtime_sim_after_a_reset_drops_setpoints_stamped_for_the_run_before(ros, processes):
+    """Issue 41: after a reset the realtime sim stepped toward setpoints the policy's clock
+    still sent for the run before (stamped for its steps 300-302), across a keep-out bar. Now
+    a setpoint stamped later than the newest observation of the run is dropped and counted:
+    the pusher is held where the new scene put it. A setpoint of the new run still moves it.
+    A third sim, remapped so that it meets neither of the others."""
+    topics = ("/pusht/pusher", "/pusht/keypoints", "/pusht/block_pose", "/pusht/score",
+              "/pusht/setpoint", "/pusht/reset")
+    remap = {"__node": "sim_c", **{name: name.replace("/pusht/", "/c/") for name in topics}}
+    _, log = processes.start("sim_c", "sim_node", remap=remap, seed=SEED + 1, mode="realtime")
+    pushers: list[PointStamped] = []
+    ros.node.create_subscription(PointStamped, "/c/pusher", pushers.append,
+                                 qos_profile(TOPICS["pusher"]))
+    setpoints = ros.node.create_publisher(PointStamped, "/c/setpoint",
+                                          qos_profile(TOPICS["setpoint"], "publisher"))
+    client = ros.node.create_client(Trigger, "/c/reset")
+    assert ros.spin_until(lambda: client.service_is_ready() and pushers
+                          and setpoints.get_subscription_count() >= 1), log.read_text()
+
+    def send(x: float, y: float, stamp) -> None:
+        msg = PointStamped()
+        msg.header.stamp, msg.header.frame_id = stamp, FRAME_ID
+        msg.point.x, msg.point.y = x, y
+        setpoints.publish(msg)
+
+    corner = (480.0, 480.0)
+    assert ros.spin_until(lambda: stamp_ns(pushers[-1].header.stamp) >= step_ns(1), 10.0)
+    send(*corner, pushers[-1].header.stamp)  # the old run heads for the corner
+    assert ros.spin_until(lambda: stamp_ns(pushers[-1].header.stamp) >= step_ns(20), 10.0)
+    old = pushers[-1]
+    assert (old.point.x, old.point.y) != tuple(seeded_state(SEED + 1)[:2])  # it moved
+    future = client.call_async(Trigger.Request())
+    assert ros.spin_until(future.done, 10.0) and future.result().success
+    assert ros.spin_until(lambda: stamp_ns(pushers[-1].header.stamp) < stamp_ns(old.header.stamp))
+    mark = next(i for i in range(len(pushers) - 1, -1, -1)
+                if stamp_ns(pushers[i].header.stamp) == 0)
+    for _ in range(3):  # the old run's setpoint, as a clock that has not heard of the reset
+        send(*corner, old.header.stamp)
+        ros.spin_for(0.05)
+    assert ros.spin_until(lambda: stamp_ns(pushers[-1].header.stamp) >= step_ns(5), 10.0)
+    start = tuple(seeded_state(SEED + 1)[:2])
+    new_run = pushers[mark:]
+    assert [(m.point.x, m.point.y) for m in new_run] == [start] * len(new_run)
+    assert ros.spin_until(lambda: "dropped 1 setpoint(s) stamped later" in log.read_text(),
+                          10.0), log.read_text()  # then throttled
+    send(*corner, pushers[-1].header.stamp)  # this run's: taken
+    assert ros.spin_until(lambda: (pushers[-1].point.x, pushers[-1].point.y) != start, 10.0)
+
+
 # --------------------------------------------------------------------------- zone_publisher
 
 

@@ -14,11 +14,15 @@ import argparse
 import json
 import os
 import shutil
+import signal
 import stat
 import struct
 import sys
 import tempfile
+import threading
 from collections import Counter, defaultdict
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path, PurePath
 
 import yaml
@@ -29,6 +33,7 @@ from rosbags.rosbag2.metadata import parse_qos
 from rosbags.typesys import Stores, get_typestore
 
 from constrained_diffusion_ros.cli import ArgumentParser, run_command
+from constrained_diffusion_ros.planning.config import read_yaml
 from msg_schemas import TOPICS, Endpoint
 from msg_schemas.conversions import step_of_stamp
 from sim_bridge import CONTROL_HZ
@@ -147,14 +152,19 @@ def flush(writer: Writer) -> None:
 
 
 def bag_information(bag: Path) -> dict:
-    """The `rosbag2_bagfile_information` of a bag directory's metadata.yaml."""
-    try:
-        information = yaml.safe_load((bag / "metadata.yaml").read_text())
-        return information["rosbag2_bagfile_information"]
-    except FileNotFoundError:
-        raise ValueError(f"{bag} is not a rosbag2 directory (no metadata.yaml)") from None
-    except (OSError, yaml.YAMLError, TypeError, KeyError) as error:
-        raise ValueError(f"{bag / 'metadata.yaml'} is not rosbag2 metadata: {error}") from None
+    """The `rosbag2_bagfile_information` of a bag directory's metadata.yaml, read by the
+    package's bounded YAML reader (`read_yaml`: a regular file of bounded size, aliases
+    bounded, so a billion-laughs file is refused at once)."""
+    path = bag / "metadata.yaml"
+    if not (path.is_symlink() or path.exists()):
+        raise ValueError(f"{bag} is not a rosbag2 directory (no metadata.yaml)")
+    document = read_yaml(path)
+    information = (document.get("rosbag2_bagfile_information")
+                   if isinstance(document, dict) else None)
+    if not isinstance(information, dict):
+        raise ValueError(f"{path} is not rosbag2 metadata: no rosbag2_bagfile_information "
+                         f"mapping")
+    return information
 
 
 def recover(bag: Path) -> int | None:
@@ -171,6 +181,11 @@ def recover(bag: Path) -> int | None:
     if not isinstance(files, list):
         raise ValueError(f"{bag / 'metadata.yaml'}: relative_file_paths is not a list")
     sources = [_file_in_bag(bag, entry) for entry in files]  # before any file is opened
+    custom = information.get("custom_data") or {}
+    if not (isinstance(custom, dict)
+            and all(isinstance(k, str) and isinstance(v, str) for k, v in custom.items())):
+        raise ValueError(f"{bag / 'metadata.yaml'}: custom_data is not a mapping of text to "
+                         f"text")
     try:
         with Reader(bag):
             return None
@@ -183,6 +198,14 @@ def recover(bag: Path) -> int | None:
     for taken in (unindexed, target):
         if taken != source and (taken.is_symlink() or taken.exists()):
             raise ValueError(f"{bag}: {taken.name} exists already; recovery would replace it")
+    with _termination_raises():  # so that `finally` removes the scratch on SIGTERM and SIGHUP
+        return _rewrite(bag, source, target, unindexed, custom)
+
+
+def _rewrite(bag: Path, source: Path, target: Path, unindexed: Path,
+             custom: dict[str, str]) -> int:
+    """`recover`'s work once the bag is checked: the new bag is written in a scratch folder
+    inside the bag, renamed into place, and the scratch removed whatever happens."""
     scratch = Path(tempfile.mkdtemp(prefix=".recovering-", dir=bag)) / bag.name
     typestore = get_typestore(Stores.ROS2_JAZZY)
     counts: Counter[str] = Counter()
@@ -206,19 +229,56 @@ def recover(bag: Path) -> int | None:
         if not counts:
             raise ValueError(f"{source}: nothing to recover ({_why_empty(source)}); the bag is "
                              f"left as it is")
-        custom_data = dict(information.get("custom_data") or {})
+        custom_data = dict(custom)
         custom_data["message_counts"] = json.dumps(dict(counts))
         custom_data[RECORDER_STATE] = (f"recovered by recover_bag: {counts.total()} complete "
                                        f"messages; the recorder had died before closing the bag")
         for key, value in custom_data.items():
             writer.set_custom_data(key, value)
         writer.close()
-        source.replace(unindexed)
-        (scratch / f"{bag.name}.mcap").replace(target)
-        (scratch / "metadata.yaml").replace(bag / "metadata.yaml")
+        with _signals_held():  # the three renames are not cut in between
+            source.replace(unindexed)
+            (scratch / f"{bag.name}.mcap").replace(target)
+            (scratch / "metadata.yaml").replace(bag / "metadata.yaml")
     finally:
         shutil.rmtree(scratch.parent, ignore_errors=True)
     return counts.total()
+
+
+TERMINATING = (signal.SIGTERM, signal.SIGHUP)  # SIGINT raises KeyboardInterrupt already
+
+
+@contextmanager
+def _termination_raises() -> Iterator[None]:
+    """SIGTERM and SIGHUP raise SystemExit(128 + signal) inside the block (in the main thread,
+    the only one that can set handlers, and where they would end the process: one ignored, as
+    under nohup, stays ignored), so that `finally` clauses run and the process still ends with
+    the status a kill by that signal reports to a shell."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def terminate(signum: int, _frame: object) -> None:
+        raise SystemExit(128 + signum)
+
+    previous = {number: signal.signal(number, terminate) for number in TERMINATING
+                if signal.getsignal(number) == signal.SIG_DFL}
+    try:
+        yield
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+
+
+@contextmanager
+def _signals_held() -> Iterator[None]:
+    """SIGINT, SIGTERM and SIGHUP held back inside the block and delivered after it."""
+    held = {signal.SIGINT, *TERMINATING}
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
 
 
 def _file_in_bag(bag: Path, entry: object,

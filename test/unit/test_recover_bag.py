@@ -1,10 +1,16 @@
 """`recover_bag` renames and rewrites files, so it must touch only regular files inside the bag,
-and must say so (exit 2, one line) rather than "0 messages recovered" when it finds nothing."""
+and must say so (exit 2, one line) rather than "0 messages recovered" when it finds nothing.
+What a bag may cost is bounded before anything is done with it (aliases in metadata.yaml), and
+an interrupted recovery leaves nothing behind."""
 
 from __future__ import annotations
 
 import os
+import resource
+import signal
 import stat
+import subprocess
+import sys
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -18,6 +24,12 @@ from constrained_diffusion_ros.evaluation import bags
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 STRING = "std_msgs/msg/String"
+REPO = Path(__file__).resolve().parents[2]
+# A recover_bag run in its own process is held to these, so that a regression (a hang, a file
+# that grows without bound) fails the test in seconds instead of hanging or filling CI.
+RUN_TIMEOUT_S = 30
+RUN_MEMORY = 1 << 30  # address space; the command needs about 150 MB
+RUN_FILE_SIZE = 16 << 20  # largest file it may write
 
 
 def killed_recording(directory: Path, messages: int) -> Path:
@@ -58,6 +70,20 @@ def with_storage(root: Path, write: Callable[[Path], None]) -> Path:
     return root / "bag"
 
 
+def edit_information(bag: Path, edit: Callable[[dict], None]) -> None:
+    """Changes a bag's metadata.yaml through `edit(rosbag2_bagfile_information)`."""
+    document = yaml.safe_load((bag / "metadata.yaml").read_text())
+    edit(document["rosbag2_bagfile_information"])
+    (bag / "metadata.yaml").write_text(yaml.safe_dump(document, sort_keys=False))
+
+
+def non_text_custom_data(root: Path) -> Path:
+    """A killed recorder's bag whose custom_data holds a list where text belongs."""
+    bag = killed_recording(root / "bag", 3).parent
+    edit_information(bag, lambda info: info["custom_data"].update(trial_metadata=[1, 2]))
+    return bag
+
+
 def outside_file(root: Path) -> Path:
     """Someone else's file, beside the bag: a killed recording that recovery would accept."""
     return killed_recording(root / "outside", 3)
@@ -78,6 +104,7 @@ ATTACKS: dict[str, Callable[[Path], tuple[Path, str]]] = {
         with_storage(root, lambda path: path.write_bytes(b"")), "empty"),
     "mcap without messages": lambda root: (killed_recording(root / "bag", 0).parent,
                                            "no complete message"),
+    "custom_data not text": lambda root: (non_text_custom_data(root), "custom_data"),
 }
 
 
@@ -162,3 +189,90 @@ def test_recover_bag_still_indexes_a_cut_off_recording(cut, kept, tmp_path, caps
     assert f"{kept} messages recovered" in capsys.readouterr().out
     assert bags.main([str(tmp_path / "bag")]) == 0
     assert "complete already" in capsys.readouterr().out
+
+
+def recover_in_process_of_its_own(bag: Path, tmp: Path, prelude: str = ""
+                                  ) -> subprocess.CompletedProcess:
+    """`recover_bag BAG` in a fresh process with `tmp` as its $TMPDIR, bounded in time, memory
+    and file size (RUN_*); `prelude` runs before it. A run past the time limit fails the
+    test."""
+
+    def limits() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (RUN_MEMORY, RUN_MEMORY))
+        resource.setrlimit(resource.RLIMIT_FSIZE, (RUN_FILE_SIZE, RUN_FILE_SIZE))
+
+    code = (f"import sys\n{prelude}\n"
+            "from constrained_diffusion_ros.evaluation import bags\n"
+            "sys.exit(bags.main(sys.argv[1:]))\n")
+    env = dict(os.environ, TMPDIR=str(tmp), OMP_NUM_THREADS="1",
+               PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
+    try:
+        return subprocess.run([sys.executable, "-c", code, str(bag)], cwd=REPO, env=env,
+                              preexec_fn=limits, capture_output=True, text=True,
+                              timeout=RUN_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"recover_bag still ran after {RUN_TIMEOUT_S} s")
+
+
+def assert_refused(result: subprocess.CompletedProcess, named: str) -> None:
+    """Exit 2 and one line on stderr naming `named`, nothing on stdout."""
+    assert result.returncode == 2, (result.returncode, result.stderr[-2000:])
+    assert result.stdout == ""
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("recover_bag: error: "), lines[-20:]
+    assert named in lines[0], lines[0]
+
+
+def alias_bomb(levels: int = 9, width: int = 9) -> str:
+    """A flow sequence of nested anchors, each level `width` aliases of the one before: a few
+    hundred bytes, width**levels leaves once expanded (387 million for nine of nine)."""
+    parts = ["&a0 [" + ", ".join(["lol"] * width) + "]"]
+    parts += [f"&a{level} [" + ", ".join([f"*a{level - 1}"] * width) + "]"
+              for level in range(1, levels + 1)]
+    return "[" + ", ".join(parts) + "]"
+
+
+def test_recover_bag_refuses_an_alias_bomb_in_metadata_at_once(tmp_path):
+    """Issue 41, finding 6.1: metadata.yaml with a billion-laughs custom_data value (read with
+    plain yaml.safe_load, then printed whole by rosbags' writer) made recover_bag run for ever,
+    growing 25 MB/s, and a kill left its .recovering-* scratch behind. The bounded YAML reader
+    refuses it before anything is written."""
+    bag = killed_recording(tmp_path / "bag", 3).parent
+    metadata = bag / "metadata.yaml"
+    text = metadata.read_text()
+    assert text.count("  custom_data:\n") == 1
+    metadata.write_text(text.replace("  custom_data:\n",
+                                     f"  custom_data:\n    bomb: {alias_bomb()}\n"))
+    custom = yaml.safe_load(metadata.read_text())["rosbag2_bagfile_information"]["custom_data"]
+    assert next(iter(custom)) == "bomb" and len(custom["bomb"][9][0][0][0]) == 9  # the bomb is in
+    (tmp_path / "tmp").mkdir()
+    before = tree(tmp_path)
+    result = recover_in_process_of_its_own(bag, tmp_path / "tmp")
+    assert_refused(result, "alias bomb")
+    assert tree(tmp_path) == before  # no .recovering-* left, the bag unchanged
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT])
+def test_an_interrupted_recovery_leaves_the_bag_as_it_was(signum, tmp_path):
+    """Issue 41, finding 6.1: a recovery stopped by a signal in mid-write removes its
+    .recovering-* scratch and renames nothing. The process signals itself after the first
+    message is copied; it must end (not finish the recovery) with the bag unchanged."""
+    bag = killed_recording(tmp_path / "bag", 3).parent
+    prelude = (
+        "import os, time\n"
+        "from constrained_diffusion_ros.evaluation import bags\n"
+        "complete = bags._complete_messages\n"
+        "def interrupted(stream):\n"
+        "    for index, record in enumerate(complete(stream)):\n"
+        "        if index == 1:\n"
+        f"            os.kill(os.getpid(), {int(signum)})\n"
+        "            time.sleep(10)\n"
+        "            print('not interrupted')\n"
+        "        yield record\n"
+        "bags._complete_messages = interrupted\n")
+    (tmp_path / "tmp").mkdir()
+    before = tree(tmp_path)
+    result = recover_in_process_of_its_own(bag, tmp_path / "tmp", prelude)
+    assert result.returncode in (128 + signum, -signum), (result.returncode, result.stderr)
+    assert "not interrupted" not in result.stdout
+    assert tree(tmp_path) == before

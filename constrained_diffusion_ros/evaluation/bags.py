@@ -38,12 +38,23 @@ from msg_schemas import TOPICS, Endpoint
 from msg_schemas.conversions import step_of_stamp
 from sim_bridge import CONTROL_HZ
 
+try:  # the zstd rosbags decompresses with
+    from compression import zstd
+except ImportError:  # Python < 3.14
+    from backports import zstd
+
 BAG_VERSION = 9  # rosbag2 metadata version written by ROS 2 Jazzy
 FLUSH_PERIOD_S = 0.5  # a SIGKILL loses at most about this much of the recording
 RECORDER_STATE = "recorder"  # custom_data key while a bag is open, and after a recovery
 MCAP_MAGIC = b"\x89MCAP0\r\n"  # how every MCAP file starts
 TRIAL_TOPICS = {"pusher": "pusher", "block": "block_pose",
                 "setpoint": "setpoint"}
+# A bag compressed per file (compression_mode: file) is unpacked whole into $TMPDIR by rosbags'
+# Reader before a message is read; zstd on ROS messages packs 3-10 times, a crafted file some
+# 30000 times (72 kB -> 2 GiB). So what the files of a bag unpack to is counted first, without
+# writing, and the bag is refused past this many times their size (but 64 MiB always pass).
+MAX_UNPACK_RATIO = 64
+MIN_UNPACK_LIMIT = 64 << 20
 
 
 def read_messages(bag: str | Path) -> dict[str, list]:
@@ -62,8 +73,10 @@ def by_topic(timed: list[tuple[int, str, object]]) -> dict[str, list]:
 def read_timed_messages(bag: str | Path) -> list[tuple[int, str, object]]:
     """(record time in ns, topic, message) of every message of a bag, in recording order."""
     typestore = get_typestore(Stores.ROS2_JAZZY)
+    bag = Path(bag)
+    check_unpacked_size(bag, bag_information(bag))  # before rosbags reads or unpacks anything
     try:
-        with Reader(Path(bag)) as reader:
+        with Reader(bag) as reader:
             return [(timestamp, connection.topic,
                      typestore.deserialize_cdr(raw, connection.msgtype))
                     for connection, timestamp, raw in reader.messages()]
@@ -167,6 +180,39 @@ def bag_information(bag: Path) -> dict:
     return information
 
 
+def compression_mode(information: dict) -> str:
+    """A bag's compression mode as rosbags reads it: "" (none), "file" or "message"."""
+    mode = str(information.get("compression_mode") or "").lower()
+    return "" if mode == "none" else mode
+
+
+def check_unpacked_size(bag: Path, information: dict) -> None:
+    """Refuses (one ValueError line) a bag compressed per file whose files would unpack to more
+    than MAX_UNPACK_RATIO times their size (at least MIN_UNPACK_LIMIT): rosbags' Reader unpacks
+    them whole into $TMPDIR on opening. Counted by decompressing without writing, and no
+    further than the limit. Any other bag passes untouched."""
+    if compression_mode(information) != "file":
+        return
+    files = information.get("relative_file_paths") or []
+    if not isinstance(files, list):
+        raise ValueError(f"{bag / 'metadata.yaml'}: relative_file_paths is not a list")
+    sources = [_file_in_bag(bag, entry) for entry in files]
+    limit = max(MIN_UNPACK_LIMIT, MAX_UNPACK_RATIO * sum(s.stat().st_size for s in sources))
+    unpacked = 0
+    for source in sources:
+        try:
+            with source.open("rb") as raw, zstd.open(raw, "rb") as stream:
+                while piece := stream.read(min(1 << 20, limit - unpacked + 1)):
+                    unpacked += len(piece)
+                    if unpacked > limit:
+                        raise ValueError(
+                            f"{bag}: its compressed files unpack to more than {limit} bytes "
+                            f"(the limit: {MAX_UNPACK_RATIO} times their size, at least "
+                            f"{MIN_UNPACK_LIMIT >> 20} MiB); refused, nothing written")
+        except (zstd.ZstdError, EOFError) as error:
+            raise ValueError(f"{source}: not a zstd file ({error})") from None
+
+
 def recover(bag: Path) -> int | None:
     """Rewrite a bag whose recorder died: every complete message of its MCAP file, in recording
     order, with index, summary and metadata.yaml (custom_data kept, message_counts recounted).
@@ -186,6 +232,7 @@ def recover(bag: Path) -> int | None:
             and all(isinstance(k, str) and isinstance(v, str) for k, v in custom.items())):
         raise ValueError(f"{bag / 'metadata.yaml'}: custom_data is not a mapping of text to "
                          f"text")
+    check_unpacked_size(bag, information)  # before rosbags unpacks anything
     try:
         with Reader(bag):
             return None
@@ -193,6 +240,9 @@ def recover(bag: Path) -> int | None:
         pass
     if information.get("storage_identifier") != "mcap" or len(files) != 1:
         raise ValueError(f"{bag}: only single-file MCAP bags can be recovered")
+    if compression_mode(information):
+        raise ValueError(f"{bag}: only uncompressed bags can be recovered (compression_mode "
+                         f"{information.get('compression_mode')!r})")
     source, target = sources[0], bag / f"{bag.name}.mcap"
     unindexed = source.with_name(source.name + ".unindexed")
     for taken in (unindexed, target):
@@ -335,7 +385,9 @@ def main(argv: list[str] | None = None) -> int:
                     "every message written to disk before the kill (the recorder writes twice a "
                     "second) is kept, the bag gets its index and metadata.yaml, and the "
                     "unindexed file stays beside it as <name>.mcap.unindexed. A complete bag is "
-                    "left as it is.")
+                    "left as it is. A bag compressed per file is refused if it would unpack to "
+                    f"more than {MAX_UNPACK_RATIO} times its size (at least "
+                    f"{MIN_UNPACK_LIMIT >> 20} MiB always pass).")
     parser.add_argument("bag", type=Path, help="the bag directory (holds metadata.yaml)")
     return run_command(report_recovery, parser.parse_args(argv), "recover_bag")
 

@@ -1,7 +1,7 @@
 """`recover_bag` renames and rewrites files, so it must touch only regular files inside the bag,
 and must say so (exit 2, one line) rather than "0 messages recovered" when it finds nothing.
-What a bag may cost is bounded before anything is done with it (aliases in metadata.yaml), and
-an interrupted recovery leaves nothing behind."""
+What a bag may cost is bounded before anything is done with it (aliases in metadata.yaml, what
+a compressed file unpacks to), and an interrupted recovery leaves nothing behind."""
 
 from __future__ import annotations
 
@@ -18,9 +18,15 @@ from pathlib import Path
 
 import pytest
 import yaml
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from constrained_diffusion_ros.evaluation import bags
+
+try:
+    from compression import zstd
+except ImportError:  # Python < 3.14: rosbags' own dependency
+    from backports import zstd
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 STRING = "std_msgs/msg/String"
@@ -250,6 +256,59 @@ def test_recover_bag_refuses_an_alias_bomb_in_metadata_at_once(tmp_path):
     result = recover_in_process_of_its_own(bag, tmp_path / "tmp")
     assert_refused(result, "alias bomb")
     assert tree(tmp_path) == before  # no .recovering-* left, the bag unchanged
+
+
+def file_compressed(bag: Path, storage: bytes) -> Path:
+    """A killed recorder's bag turned into one compressed per file, its storage `storage`."""
+    (killed_recording(bag, 3)).unlink()
+
+    def compressed(info: dict) -> None:
+        info.update(compression_format="zstd", compression_mode="FILE",
+                    relative_file_paths=[f"{bag.name}.mcap.zstd"])
+        info["files"][0]["path"] = f"{bag.name}.mcap.zstd"
+
+    edit_information(bag, compressed)
+    (bag / f"{bag.name}.mcap.zstd").write_bytes(storage)
+    return bag
+
+
+def test_recover_bag_refuses_a_decompression_bomb_without_writing_it(tmp_path):
+    """Issue 41, finding 6.2: a bag compressed per file (72 kB of zstd) made rosbags' reader
+    unpack 2 GiB into $TMPDIR before recover_bag gave up. Here 128 MiB of zeros in about 6 kB,
+    more than the limit (64 MiB for so small a file): refused in one line, $TMPDIR left empty,
+    and the run is held to 16 MiB per file written, so the old behaviour fails fast."""
+    frame = zstd.compress(bytes(1 << 20))
+    unpacks_to = 128 << 20
+    assert unpacks_to > max(64 << 20, 64 * len(frame) * 128)  # the limit, as --help states it
+    bag = file_compressed(tmp_path / "bag", frame * (unpacks_to >> 20))
+    (tmp_path / "tmp").mkdir()
+    before = tree(tmp_path)
+    result = recover_in_process_of_its_own(bag, tmp_path / "tmp")
+    assert_refused(result, "unpack to more than")
+    assert list((tmp_path / "tmp").iterdir()) == []
+    assert tree(tmp_path) == before
+
+
+def test_recover_bag_leaves_a_complete_compressed_bag_alone(tmp_path, capsys):
+    """The limit does not stop an honest bag compressed per file: it is found complete, and
+    read back."""
+    writer = Writer(tmp_path / "bag", version=bags.BAG_VERSION,
+                    storage_plugin=bags.StoragePlugin.MCAP)
+    writer.set_compression(CompressionMode.FILE, CompressionFormat.ZSTD)
+    writer.open()
+    connection = writer.add_connection("/pusher", STRING, typestore=TYPESTORE)
+    for step in range(3):
+        data = TYPESTORE.serialize_cdr(TYPESTORE.types[STRING](data=f"step {step}"), STRING)
+        writer.write(connection, step + 1, data)
+    writer.close()
+    information = yaml.safe_load((tmp_path / "bag" / "metadata.yaml").read_text())
+    assert information["rosbag2_bagfile_information"]["compression_mode"].lower() == "file"
+    before = tree(tmp_path)
+    assert bags.main([str(tmp_path / "bag")]) == 0
+    assert "complete already" in capsys.readouterr().out
+    assert tree(tmp_path) == before
+    assert [m.data for m in bags.read_messages(tmp_path / "bag")["/pusher"]] == [
+        "step 0", "step 1", "step 2"]
 
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT])

@@ -6,18 +6,24 @@ point in the group `constrained_diffusion_ros.restricted_areas` of that package'
 works without editing this one. Whatever goes wrong while finding or building it is reported as
 one ValueError line that names the spec, as every other malformed scenario is.
 
-A scenario file is data, so naming a callable must not run it: the spec has to resolve, without
-calling anything (attributes are read statically; importing the module runs its top-level code,
-as any plug-in's import does), to a concrete `RestrictedArea` subclass before the class is
-called with the scenario's parameters ("os:system" is refused unrun). The built area is then
-asked about `probe_points` of the workspace, in the shapes and dtypes the planner asks in, so an
-area that answers NaN, the wrong shape or an exception is refused at load, not mid-plan.
+A scenario file is data, so naming a callable must not run it. Importing a module runs its
+top-level code, so a "module:Class" spec is imported only from a module plug-ins may come from
+(`allowed_module`: this package's, one that an installed distribution declares an entry point
+of the group in, or one listed in the environment variable `PLUGIN_MODULES_ENV`); anything else
+("this:s", which would print the Zen of Python) is refused before anything is imported. The
+spec then has to resolve, without calling anything (attributes are read statically), to a
+concrete `RestrictedArea` subclass before the class is called with the scenario's parameters
+("os:system" is refused unrun). The built area is then asked about `probe_points` of the
+workspace, in the shapes and dtypes the planner asks in, so an area that answers NaN, the wrong
+shape or an exception is refused at load, not mid-plan.
 """
 
 from __future__ import annotations
 
 import importlib
 import inspect
+import os
+import re
 from collections.abc import Mapping
 from importlib.metadata import entry_points
 from typing import Any
@@ -28,6 +34,8 @@ from torch import Tensor
 from constrained_diffusion_ros.zones.area import Bounds, RestrictedArea
 
 ENTRY_POINT_GROUP = "constrained_diffusion_ros.restricted_areas"
+PLUGIN_MODULES_ENV = "CONSTRAINED_DIFFUSION_ROS_PLUGIN_MODULES"  # more modules, comma-separated
+OWN_PACKAGE = __name__.partition(".")[0]
 PUSHT_WORKSPACE: Bounds = (0.0, 0.0, 512.0, 512.0)  # the core may not import pusht: the default
 PROBE_OUTSIDE = 16.0  # px beyond each wall: the planner asks about points off the workspace too
 PROBE_BATCH = (5, 6)  # the probe points again as a batch (B, H, 2), as the shield asks
@@ -46,12 +54,30 @@ def _static_attribute(target: Any, attribute: str) -> Any:
     return target
 
 
+def allowed_module(name: str) -> bool:
+    """Whether a "module:Class" spec may import module `name`: one of this package's, one an
+    installed distribution names in an entry point of `ENTRY_POINT_GROUP` (it declared itself a
+    plug-in's home), or one in `$PLUGIN_MODULES_ENV` (comma-separated; a package listed allows
+    its submodules). Decided on the name alone: finding a module imports its parents."""
+    listed = re.split(r"[,\s]+", os.environ.get(PLUGIN_MODULES_ENV, ""))
+    if any(name == root or name.startswith(f"{root}.")
+           for root in (OWN_PACKAGE, *filter(None, listed))):
+        return True
+    return any(entry.module == name for entry in entry_points(group=ENTRY_POINT_GROUP))
+
+
 def _resolve(spec: str) -> Any:
-    """The object that "module:attribute" or an entry point's name refers to; nothing called."""
+    """The object that "module:attribute" or an entry point's name refers to; nothing called,
+    and a module imported only if `allowed_module`."""
     if ":" in spec:
         module_name, _, attribute = spec.partition(":")
         if not module_name or not attribute:
             raise ValueError(f"restricted area {spec!r}: expected 'package.module:Class'")
+        if not allowed_module(module_name):
+            raise ValueError(f"restricted area {spec!r}: module {module_name!r} is not one "
+                             f"plug-ins may come from, so it was not imported (allowed: "
+                             f"{OWN_PACKAGE}, modules named by entry points in "
+                             f"{ENTRY_POINT_GROUP}, and those listed in ${PLUGIN_MODULES_ENV})")
         try:
             module: Any = importlib.import_module(module_name)
         except Exception as error:  # not found, or failing while it runs: one line
@@ -155,10 +181,11 @@ def load_area(spec: str, parameters: Mapping[str, Any] | None = None, *,
               workspace: Bounds = PUSHT_WORKSPACE) -> RestrictedArea:
     """Build the restricted area `spec` names, calling it with `parameters` as keywords.
 
-    `spec` is "package.module:Class" (a dotted attribute path after the colon works too) or the
-    name of an entry point in `ENTRY_POINT_GROUP`; either must name a concrete `RestrictedArea`
-    subclass, checked before anything is called. The built area is probed on `probe_points`
-    of `workspace` (px). Raises ValueError, naming the spec, for a missing module or attribute,
+    `spec` is "package.module:Class" (a dotted attribute path after the colon works too), its
+    module one `allowed_module` allows, or the name of an entry point in `ENTRY_POINT_GROUP`;
+    either must name a concrete `RestrictedArea` subclass, checked before anything is called.
+    The built area is probed on `probe_points` of `workspace` (px). Raises ValueError, naming
+    the spec, for a module not allowed (before importing it), a missing module or attribute,
     anything but such a class, parameters the class refuses (TypeError) or any other failure
     to build it, and an answer on the probe points that is not a finite (or +inf) distance.
     """

@@ -6,7 +6,9 @@ from __future__ import annotations
 import contextlib
 import importlib
 import inspect
+import os
 import runpy
+import subprocess
 import sys
 from collections.abc import Iterator, Mapping
 from pathlib import Path
@@ -25,7 +27,12 @@ from torch import Tensor
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 from constrained_diffusion_ros.examples.camera import CameraZones, apply_homography
 from constrained_diffusion_ros.zones import RestrictedArea, ZoneSet
-from constrained_diffusion_ros.zones.plugins import ENTRY_POINT_GROUP, load_area, probe_points
+from constrained_diffusion_ros.zones.plugins import (
+    ENTRY_POINT_GROUP,
+    PLUGIN_MODULES_ENV,
+    load_area,
+    probe_points,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 CAMERA = "constrained_diffusion_ros.examples.camera:CameraZones"
@@ -37,6 +44,16 @@ CORNERS_IN_IMAGE = np.array([[184.484, 146.033], [499.540, 162.359], [575.045, 4
 # points further down map nearer (divided by a larger w). It sees the table point (10, 20) at
 # image (0, 0); the workspace centre would lie behind it.
 TILTED = [[2.0, 0.0, 10.0], [0.0, 2.0, 20.0], [0.0, 0.01, 1.0]]
+
+
+@pytest.fixture(autouse=True, scope="module")
+def allowed_here() -> Iterator[None]:
+    """The modules these tests name, allowed as a user would allow them: the checks after the
+    allow-list are tested on them (`test_a_module_is_imported_only_if_allowed` tests the list)."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv(PLUGIN_MODULES_ENV, ",".join(
+            ["no_such_package", HERE, *(module.__name__ for module in STDLIB)]))
+        yield
 
 
 def camera_file(tmp_path: Path, zones: list, homography: list = TILTED, **extra: Any) -> Path:
@@ -352,6 +369,7 @@ def test_attribute_paths_are_read_without_running_module_getattr(
         "    raise AttributeError(name)\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.delitem(sys.modules, name, raising=False)
+    monkeypatch.setenv(PLUGIN_MODULES_ENV, name)
     with pytest.raises(ValueError, match=f"module '{name}' has no attribute 'Area'"):
         load_area(f"{name}:Area", {})
 
@@ -373,6 +391,80 @@ def test_entry_points_are_held_to_the_same_rule(
     with pytest.raises(ValueError, match=r"'module': entry point 'os' does not load .*module"):
         load_area("module", {})
     assert isinstance(load_area("fine", {}), InfArea)
+
+
+IMPORTED = "imported"  # what a module of test_a_module_is_imported_only_if_allowed prints
+
+
+def plugin_module(tmp_path: Path, name: str) -> None:
+    """`name` (dotted: packages made too), whose import prints IMPORTED; it defines `Area`."""
+    *packages, last = name.split(".")
+    folder = tmp_path
+    for package in packages:
+        folder = folder / package
+        folder.mkdir(exist_ok=True)
+        (folder / "__init__.py").touch()
+    (folder / f"{last}.py").write_text(
+        f"print({IMPORTED!r})\n"
+        "import torch\n"
+        "from constrained_diffusion_ros.zones import RestrictedArea\n"
+        "class Area(RestrictedArea):\n"
+        "    def signed_distance(self, points):\n"
+        "        return torch.full(points.shape[:-1], torch.inf, dtype=points.dtype)\n")
+
+
+def load_in_a_child(tmp_path: Path, spec: str, allowed: str | None = None
+                    ) -> subprocess.CompletedProcess:
+    """`load_area(spec)` in a fresh interpreter with `tmp_path` on its path, which prints the
+    refusal (or "built") and the modules of the spec it imported."""
+    environment = {k: v for k, v in os.environ.items() if k != PLUGIN_MODULES_ENV}
+    if allowed is not None:
+        environment[PLUGIN_MODULES_ENV] = allowed
+    environment["PYTHONPATH"] = os.pathsep.join([str(tmp_path), str(REPO)])
+    module = spec.partition(":")[0]
+    code = ("import sys\n"
+            "from constrained_diffusion_ros.zones.plugins import load_area\n"
+            "try:\n"
+            f"    load_area({spec!r})\n"
+            "    print('built')\n"
+            "except ValueError as error:\n"
+            "    print(error)\n"
+            f"print('imported:', sorted(m for m in sys.modules if m == {module!r} or "
+            f"m.startswith({module.partition('.')[0]!r})))\n")
+    return subprocess.run([sys.executable, "-c", code], env=environment, capture_output=True,
+                          text=True, timeout=120, check=True)
+
+
+def test_a_module_is_imported_only_if_allowed(tmp_path: Path) -> None:
+    """Found by finding 7 of issue 41: "this:s" printed the Zen of Python, the module imported
+    before its attribute was checked. A module not allowed is refused in one line before
+    anything is imported; allowed are this package's, those an installed distribution names in
+    an entry point of the group, and those listed in the environment variable (a package
+    listed allows its submodules)."""
+    refused = load_in_a_child(tmp_path, "this:s")
+    line, imported = refused.stdout.splitlines()
+    assert line == ("restricted area 'this:s': module 'this' is not one plug-ins may come from, "
+                    "so it was not imported (allowed: constrained_diffusion_ros, modules named "
+                    "by entry points in constrained_diffusion_ros.restricted_areas, and those "
+                    f"listed in ${PLUGIN_MODULES_ENV})")
+    assert imported == "imported: []" and not refused.stderr  # no Zen of Python, no traceback
+    for name in ("user_zones", "user_pkg.zones", "declared.zones"):
+        plugin_module(tmp_path, name)
+    assert load_in_a_child(tmp_path, "user_zones:Area").stdout.splitlines()[1:] == \
+        ["imported: []"]
+    assert load_in_a_child(tmp_path, "user_zones:Area", "other, user_zones").stdout.splitlines(
+        ) == [IMPORTED, "built", "imported: ['user_zones']"]
+    assert load_in_a_child(tmp_path, "user_pkg.zones:Area", "user_pkg").stdout.splitlines() == \
+        [IMPORTED, "built", "imported: ['user_pkg', 'user_pkg.zones']"]
+    assert "not one plug-ins may come from" in load_in_a_child(  # a prefix of a name is not it
+        tmp_path, "user_pkg.zones:Area", "user_pk").stdout
+    info = tmp_path / "declared-1.0.dist-info"  # an installed distribution's entry point
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: declared\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text(f"[{ENTRY_POINT_GROUP}]\nzones = declared.zones:Area\n")
+    assert load_in_a_child(tmp_path, "declared.zones:Area").stdout.splitlines() == \
+        [IMPORTED, "built", "imported: ['declared', 'declared.zones']"]
+    assert load_in_a_child(tmp_path, "zones").stdout.splitlines()[1] == "built"
 
 
 def test_the_probe_covers_the_workspace_it_is_given() -> None:

@@ -19,6 +19,7 @@ from constrained_diffusion_ros.examples.camera import CameraZones
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.zones import ZoneSet
+from constrained_diffusion_ros.zones.plugins import PLUGIN_MODULES_ENV
 
 
 @pytest.fixture(scope="module")
@@ -84,7 +85,8 @@ def test_a_grid_from_a_pgm_file_relative_to_the_scenarios_file(tmp_path: Path) -
     ("zones: [{grid: {from_scenario: base, resolution: 4, origin: [600, 0]}}]",
      "no keep-out cell inside the workspace"),
     ("zones: [{grid: {file: missing.pgm, resolution: 4}}]", "missing.pgm"),
-    ('plugin: {class: "no_such_package.areas:Area"}', "cannot import 'no_such_package.areas'"),
+    ('plugin: {class: "no_such_package.areas:Area"}', "'no_such_package.areas' is not one "
+                                                      "plug-ins may come from"),
     ('plugin: {class: "constrained_diffusion_ros.examples.camera:CameraZones"}', "bad parameters"),
     ("plugin: {module: constrained_diffusion_ros.examples.camera}", "plugin is {class"),
     ('{plugin: {class: "x:Y"}, zones: [{square: {center: [1, 1], side: 1}}]}', "both zones"),
@@ -121,6 +123,7 @@ def test_a_plugin_without_polygons_is_measured_through_its_own_queries(
                         - self.radius).to(points.dtype)
         """))
     monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv(PLUGIN_MODULES_ENV, "user_areas")  # a user's module, allowed by the user
     path = write_scenarios(tmp_path, """
         disc:
           plugin: {class: "user_areas:Disc", parameters: {centre: [100, 100], radius: 30}}

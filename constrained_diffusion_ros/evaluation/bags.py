@@ -55,6 +55,11 @@ TRIAL_TOPICS = {"pusher": "pusher", "block": "block_pose",
 # writing, and the bag is refused past this many times their size (but 64 MiB always pass).
 MAX_UNPACK_RATIO = 64
 MIN_UNPACK_LIMIT = 64 << 20
+# What rosbags' and mcap's parsers raise on bytes that are not a whole MCAP file, besides their
+# own errors (a file of only the magic gives TypeError from ord(b""), one cut in a fixed-size
+# field struct.error, one shorter than a footer OSError from its seek).
+STORAGE_FAULTS = (ReaderError, McapError, EOFError, struct.error, TypeError, ValueError,
+                  AssertionError, IndexError, KeyError, OSError)
 
 
 def read_messages(bag: str | Path) -> dict[str, list]:
@@ -77,12 +82,13 @@ def read_timed_messages(bag: str | Path) -> list[tuple[int, str, object]]:
     check_unpacked_size(bag, bag_information(bag))  # before rosbags reads or unpacks anything
     try:
         with Reader(bag) as reader:
-            return [(timestamp, connection.topic,
-                     typestore.deserialize_cdr(raw, connection.msgtype))
+            raws = [(timestamp, connection.topic, connection.msgtype, raw)
                     for connection, timestamp, raw in reader.messages()]
-    except ReaderError as error:
-        raise ValueError(f"{bag}: not a closed bag ({error}); if its recorder died, run "
-                         f"`recover_bag {bag}`") from None
+    except STORAGE_FAULTS as error:
+        raise ValueError(f"{bag}: not a closed bag ({type(error).__name__}: {error}); if its "
+                         f"recorder died, run `recover_bag {bag}`") from None
+    return [(timestamp, topic, typestore.deserialize_cdr(raw, msgtype))
+            for timestamp, topic, msgtype, raw in raws]
 
 
 def messages_of(messages: dict[str, list], endpoint: Endpoint) -> list:
@@ -236,8 +242,8 @@ def recover(bag: Path) -> int | None:
     try:
         with Reader(bag):
             return None
-    except ReaderError:
-        pass
+    except STORAGE_FAULTS:
+        pass  # not a complete bag: recover it
     if information.get("storage_identifier") != "mcap" or len(files) != 1:
         raise ValueError(f"{bag}: only single-file MCAP bags can be recovered")
     if compression_mode(information):
@@ -366,7 +372,7 @@ def _why_empty(source: Path) -> str:
         return "the file is empty"
     if head != MCAP_MAGIC:
         return "not an MCAP file"
-    return "no complete message in the file"
+    return "not a complete MCAP file: no complete message in it"
 
 
 def _complete_messages(stream):

@@ -110,6 +110,10 @@ ATTACKS: dict[str, Callable[[Path], tuple[Path, str]]] = {
         with_storage(root, lambda path: path.write_bytes(b"")), "empty"),
     "mcap without messages": lambda root: (killed_recording(root / "bag", 0).parent,
                                            "no complete message"),
+    # issue 41, finding 6.3: rosbags' reader raised TypeError from ord(b"") on this file
+    "mcap magic only": lambda root: (
+        with_storage(root, lambda path: path.write_bytes(bags.MCAP_MAGIC)),
+        "not a complete MCAP file"),
     "custom_data not text": lambda root: (non_text_custom_data(root), "custom_data"),
 }
 
@@ -335,3 +339,11 @@ def test_an_interrupted_recovery_leaves_the_bag_as_it_was(signum, tmp_path):
     assert result.returncode in (128 + signum, -signum), (result.returncode, result.stderr)
     assert "not interrupted" not in result.stdout
     assert tree(tmp_path) == before
+
+
+def test_read_messages_names_a_file_that_is_not_a_whole_mcap(tmp_path):
+    """Issue 41, finding 6.3, for the readers of bags: a storage file of only the MCAP magic
+    is a one-line ValueError pointing at recover_bag, not a TypeError from rosbags' parser."""
+    bag = with_storage(tmp_path, lambda path: path.write_bytes(bags.MCAP_MAGIC))
+    with pytest.raises(ValueError, match=r"not a closed bag .*recover_bag"):
+        bags.read_messages(bag)

@@ -177,7 +177,13 @@ def bag_information(bag: Path) -> dict:
     path = bag / "metadata.yaml"
     if not (path.is_symlink() or path.exists()):
         raise ValueError(f"{bag} is not a rosbag2 directory (no metadata.yaml)")
-    document = read_yaml(path)
+    try:
+        document = read_yaml(path)
+    except ValueError as error:  # "PATH: not valid YAML ...", or a file that is not regular
+        named = f"{path}: "
+        if not str(error).startswith(named):
+            raise
+        raise ValueError(f"{path} is not rosbag2 metadata: {str(error)[len(named):]}") from None
     information = (document.get("rosbag2_bagfile_information")
                    if isinstance(document, dict) else None)
     if not isinstance(information, dict):

@@ -72,8 +72,16 @@ def _send(connection: Connection, kind: Request | Reply, payload: object) -> Non
 
 def serve(descriptor: int, threads: int, niceness: int, idle: bool = False) -> None:
     """The child: plan each job with the planner and generator it was last given, until told
-    to stop or the node's end of the socket closes (the node died)."""
+    to stop or the node's end of the socket closes (the node died, even by SIGKILL: then a
+    plan in flight stops, its answer cannot be sent, and the child exits without a word)."""
     connection = Connection(descriptor)
+    with contextlib.suppress(OSError, EOFError):  # the node is gone: nobody to answer
+        _serve(connection, threads, niceness, idle)
+
+
+def _serve(connection: Connection, threads: int, niceness: int, idle: bool) -> None:
+    """`serve`'s loop; returns when told to stop, raises OSError or EOFError when the node's
+    end of the socket is closed."""
     with contextlib.suppress(OSError, AttributeError):
         os.nice(niceness)  # kept if it goes back from idle to normal scheduling
         if idle:  # before torch starts threads: they inherit it
@@ -83,10 +91,7 @@ def serve(descriptor: int, threads: int, niceness: int, idle: bool = False) -> N
     policy, planner, zones = None, None, None
     generator = torch.Generator()
     while True:
-        try:
-            kind, data = pickle.loads(connection.recv_bytes())
-        except (EOFError, OSError):
-            return
+        kind, data = pickle.loads(connection.recv_bytes())
         if kind == Request.STOP:
             return
         began = time.perf_counter()
@@ -106,15 +111,18 @@ def serve(descriptor: int, threads: int, niceness: int, idle: bool = False) -> N
                 # Any message while it plans makes the plan worthless (the node sends a job
                 # only to an idle child): a cancel, a new seed or planner, a stop.
                 chunk = plan_chunk(planner, job, generator, connection.poll)
-                _send(connection, Reply.CHUNK, (chunk, time.perf_counter() - began))
             # Request.CANCEL: the plan it stopped is answered already
         except Interrupted:
             _send(connection, Reply.CANCELLED, (None, time.perf_counter() - began))
+            continue
         except Exception as error:
             # Only a job's reply ends it.
             reply = Reply.JOB_ERROR if kind == Request.JOB else Reply.ERROR
             _send(connection, reply, (f"{type(error).__name__}: {error}",
                                       time.perf_counter() - began))
+            continue
+        if kind == Request.JOB:  # outside the try: a send that fails is the node gone
+            _send(connection, Reply.CHUNK, (chunk, time.perf_counter() - began))
 
 
 def _unread(connection: Connection) -> int:
@@ -128,8 +136,10 @@ def _unread(connection: Connection) -> int:
 
 def child_command(descriptor: int, threads: int, niceness: int, idle: bool) -> list[str]:
     """The planning child's command line: a plain interpreter that runs `serve`."""
-    code = (f"from {__name__} import serve; "
-            f"serve({descriptor}, {threads}, {niceness}, {idle})")
+    # SIGINT ignored: Ctrl-C in a terminal reaches the whole process group, and the child ends
+    # with its node (told to stop, or finding the socket closed), not with a traceback.
+    code = (f"import signal; signal.signal(signal.SIGINT, signal.SIG_IGN); "
+            f"from {__name__} import serve; serve({descriptor}, {threads}, {niceness}, {idle})")
     return [sys.executable, "-c", code]
 
 

@@ -599,6 +599,59 @@ def test_the_planning_process_exits_when_the_node_is_killed(make_tiny_policy, tm
     assert gone()
 
 
+def test_a_planning_child_whose_node_is_killed_mid_plan_exits_without_a_traceback(
+        make_tiny_policy, tmp_path) -> None:
+    """Found by finding 7 of issue 41: after `kill -9` of the node, its child, planning,
+    found the socket closed, stopped the plan and printed a 25-line BrokenPipeError traceback
+    sending the answer. It exits quietly now; its stderr is the node's (here a file)."""
+    model = save_policy(make_tiny_policy(0), tmp_path / "model")
+    stderr = tmp_path / "stderr.txt"
+    with stderr.open("w") as errors:
+        node = subprocess.Popen([sys.executable, "-c", (
+            "import time, torch\n"
+            "from constrained_diffusion_ros.planning.planners import ConstrainedPlanner\n"
+            "from constrained_diffusion_ros.planning.config import ConstraintConfig\n"
+            "from constrained_diffusion_ros.planning.plan_jobs import PlanJob\n"
+            "from constrained_diffusion_ros.planning.planning_process import PlanningProcess\n"
+            "from constrained_diffusion_ros.policy.weights import load_policy\n"
+            "from constrained_diffusion_ros.pusht import PUSHT_ROBOT\n"
+            f"policy = load_policy({str(model)!r})\n"
+            "config = ConstraintConfig('slow', sampler='ddpm', denoising_steps=100)\n"
+            "worker = PlanningProcess(ConstrainedPlanner(policy, config, PUSHT_ROBOT),\n"
+            "                         lambda result: None)\n"
+            "while not worker.ready:\n"
+            "    time.sleep(0.01)\n"
+            "worker.submit(PlanJob(1, 0, torch.full((1, 2, 20), 200.0), None, 0, None))\n"
+            "print(worker.pid, flush=True)\n"  # the job is sent: the child reads it, and plans
+            "time.sleep(120)\n")], stdout=subprocess.PIPE, stderr=errors, text=True,
+            env={**os.environ, "OMP_NUM_THREADS": "1"})
+        try:
+            child = int(node.stdout.readline())
+        finally:
+            node.kill()
+            node.wait()
+
+    def gone() -> bool:
+        try:
+            return "State:\tZ" in Path(f"/proc/{child}/status").read_text()  # a zombie
+        except FileNotFoundError:
+            return True
+
+    assert until(gone, timeout=30)
+    printed = stderr.read_text()
+    assert "Traceback" not in printed and len(printed.splitlines()) <= 1, printed
+
+
+def until(condition, timeout: float) -> bool:
+    """Whether `condition()` came true within `timeout` s (looked at every 20 ms)."""
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        threading.Event().wait(0.02)
+    return True
+
+
 def observations_at(step: int, batch: int = 2) -> np.ndarray:
     return np.full((batch, CONFIG.obs_dim), float(step), dtype=np.float32)
 

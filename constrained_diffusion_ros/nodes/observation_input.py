@@ -72,6 +72,11 @@ class ObservationInput:
     def status(self) -> dict[str, object]:
         return {"observations_refused": self.refused}
 
+    def starts_run(self, stamp: float) -> bool:
+        """Whether an observation stamped `stamp` starts a new run (episode): it is the first,
+        or no later than the last plausible one (the simulator was reset, stamps start again)."""
+        return self.pusher_stamp is None or stamp <= self.pusher_stamp
+
     def take(self, stamp: float) -> np.ndarray | None:
         """The observation of `stamp` from its two halves (older halves dropped), or None
         when it is refused (warned, counted)."""
@@ -80,7 +85,7 @@ class ObservationInput:
             for old in [s for s in pending if s < stamp]:
                 del pending[old]
         pusher = self.robot.pusher(observation).astype(float)
-        new_episode = self.pusher_stamp is None or stamp <= self.pusher_stamp
+        new_episode = self.starts_run(stamp)
         reason = "NaN/inf" if not np.all(np.isfinite(observation)) else \
             self.robot.implausible(pusher, None if new_episode else self.pusher,
                                    0.0 if new_episode else stamp - self.pusher_stamp)

@@ -160,8 +160,14 @@ class PolicyNode(Node):
     def _on_observation(self, stamp: float, stamp_msg) -> None:
         step = step_of_stamp(stamp_msg, self.robot.control_hz)
         if self.realtime:  # the setpoint the clock sends from now on
+            new_run = self.observations.starts_run(stamp)
+            if new_run:  # a reset: the run before's setpoint is never sent again, and nothing
+                self.latest_stamp = None  # is sent until this run's first observation is taken
+                self.output.withdraw()
             observation = self._take(stamp)
             if observation is not None:
+                if new_run:  # none of the run before's plans (one in flight) goes into this
+                    self.loop.reset()  # one, even where its first stamp equals the last
                 self.latest_stamp = stamp_msg
                 self._send(self.loop.observe(step, observation), publish=False)
             return

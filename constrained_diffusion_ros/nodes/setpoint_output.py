@@ -53,6 +53,12 @@ class SetpointOutput:
         self.violations += self.sound.inside_zone(setpoint)
         return sent
 
+    def withdraw(self) -> None:
+        """No setpoint in force until the next `send`: the run it was for has ended (a reset);
+        no tick sends it after this returns."""
+        with self._lock:
+            self.in_force = None
+
     def status(self) -> dict[str, object]:
         return {"violations": self.violations, "unsound_setpoints": self.sound.unsound,
                 "no_free_space": self.sound.no_free_space}

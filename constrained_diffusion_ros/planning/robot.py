@@ -7,11 +7,18 @@ and a node for another robot builds one from its parameters.
 
 from __future__ import annotations
 
+import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from constrained_diffusion_ros.zones.area import Bounds
+
+# A reported pusher may be this much farther from the last than the PD law can carry it
+# (`RobotModel.reach`, an exact bound): gains, rates and positions of a real robot known to
+# a tenth.
+REACH_SLACK = 1.1
 
 
 @dataclass(frozen=True)
@@ -57,10 +64,9 @@ class RobotModel:
         """Why a reported pusher position cannot be this robot's (None: it can be).
 
         Outside the workspace by more than the pusher's radius, or farther from `previous`
-        (reported `seconds` before) than the PD law can carry it: with setpoints in the
-        workspace, |setpoint - position| <= D (its diagonal), so the speed never exceeds
-        kp D / kv (where the acceleration would turn against it), with a quarter's slack. A
-        position refused here is a sensor fault or an attack, never a place to hold the pusher.
+        (reported `seconds` before) than the PD law can carry it (`reach`, with REACH_SLACK).
+        A position refused here is a sensor fault or an attack, never a place to hold the
+        pusher.
         """
         position = np.asarray(position, dtype=float)
         x_min, y_min, x_max, y_max = self.workspace
@@ -68,15 +74,33 @@ class RobotModel:
         if not np.all(np.isfinite(position)) or np.any(position < (x_min - grown, y_min - grown)) \
                 or np.any(position > (x_max + grown, y_max + grown)):
             return f"pusher reported at {np.round(position, 1).tolist()}, outside the workspace"
-        if previous is None or seconds <= 0 or self.kv <= 0:
+        if previous is None or seconds <= 0:
             return None
-        diagonal = float(np.hypot(x_max - x_min, y_max - y_min))
-        reach = 1.25 * self.kp * diagonal / self.kv * seconds + grown
+        reach = REACH_SLACK * self.reach(seconds)
         jump = float(np.linalg.norm(position - np.asarray(previous, dtype=float)))
         if jump > reach:
             return (f"pusher reported {jump:.0f} px from where it was {seconds:.2f} s before, "
                     f"farther than it can move ({reach:.0f} px)")
         return None
+
+    def reach(self, seconds: float) -> float:
+        """The farthest (px) the pusher can move in `seconds` (rounded up to control steps)
+        under setpoints in the workspace, each held for a control step; inf if the PD law does
+        not settle.
+
+        Exact, from the PD law: per axis the position is linear in the setpoints (`transition`),
+        so the move over the window is sum_b K_b s_b over every setpoint s_b so far, with
+        sum_b K_b = 0 (one setpoint held for ever moves nothing). Taken about the workspace's
+        centre, |move| <= R sum_b |K_b| with R the half-diagonal: attained by setpoints at
+        opposite corners in the signs of K_b (one step: at rest in a corner, the other one
+        commanded for two steps), and covering every start at rest in the workspace (a
+        setpoint held there for ever). Its limit: setpoints outside the workspace (the
+        simulator takes them up to a workspace beyond its edges) can carry the pusher farther;
+        a node that commands such setpoints gets its pusher refused.
+        """
+        x_min, y_min, x_max, y_max = self.workspace
+        steps = max(1, math.ceil(seconds * self.control_hz - 1e-6))
+        return float(np.hypot(x_max - x_min, y_max - y_min)) / 2 * _move_gain(self, steps)
 
     def pusher(self, observations: np.ndarray) -> np.ndarray:
         """(..., 2) pusher positions in (..., obs_dim) observations (numpy or torch)."""
@@ -100,3 +124,25 @@ class RobotModel:
         for _ in range(n_substeps - 1):
             powers.append(one @ powers[-1])
         return np.stack(powers)[:, :2]
+
+
+@functools.lru_cache(maxsize=256)
+def _move_gain(robot: RobotModel, steps: int) -> float:
+    """sum_b |K_b| of `RobotModel.reach` for a window of `steps` control steps (taken once per
+    robot and window: the node asks at every observation)."""
+    one = robot.transition(robot.substeps)[-1]
+    settle, drive = one[:, :2], one[:, 2]  # one control step: state <- state, setpoint
+    if np.max(np.abs(np.linalg.eigvals(settle))) >= 1.0:
+        return math.inf
+    total, power = 0.0, np.eye(2)
+    for _ in range(steps):  # the window's setpoints, newest first
+        total += abs(float((power @ drive)[0]))
+        power = settle @ power
+        if np.abs(power).max() < 1e-15:
+            break
+    before = (power - np.eye(2))[0]  # what the state at the window's start adds
+    power = np.eye(2)
+    while np.abs(power).max() >= 1e-15:  # the setpoints before the window, newest first
+        total += abs(float(before @ power @ drive))
+        power = settle @ power
+    return total

@@ -15,13 +15,16 @@ spec then has to resolve, without calling anything (attributes are read statical
 concrete `RestrictedArea` subclass before the class is called with the scenario's parameters
 ("os:system" is refused unrun). The built area is then asked about `probe_points` of the
 workspace, in the shapes and dtypes the planner asks in, so an area that answers NaN, the wrong
-shape or an exception is refused at load, not mid-plan.
+shape or an exception is refused at load, not mid-plan; and what `load_area` returns checks
+every answer in use too (`CheckedArea`), so a check that turns bad later (NaN after a while)
+raises `ZoneCheckError`, naming the spec and the fault, where the planner or the shield asked.
 """
 
 from __future__ import annotations
 
 import importlib
 import inspect
+import math
 import os
 import re
 from collections.abc import Mapping
@@ -150,35 +153,162 @@ def _check_answers(spec: str, area: RestrictedArea, workspace: Bounds) -> None:
                 except Exception as error:  # a user's class may fail any way: one line
                     raise ValueError(f"restricted area {spec!r}: {method} failed on {where} "
                                      f"({_one_line(error)})") from error
-                _check_answer(spec, method, kind, answer, points, where)
+                fault = _answer_fault(method, kind, answer, points, where)
+                if fault:
+                    raise ValueError(f"restricted area {spec!r}: {fault}")
 
 
-def _check_answer(spec: str, method: str, kind: str, answer: Any, points: Tensor,
-                  where: str) -> None:
-    prefix = f"restricted area {spec!r}: {method}"
+def _answer_fault(method: str, kind: str, answer: Any, points: Tensor, where: str) -> str | None:
+    """What is wrong with `answer`, `method`'s ("float": a distance, "bool") to `points`
+    (`where` says what they were), in words starting with `method`; None if nothing."""
     if not isinstance(answer, Tensor):
-        raise ValueError(f"{prefix} returned a {type(answer).__name__}, not a torch.Tensor, "
-                         f"for {where}")
+        return f"{method} returned a {type(answer).__name__}, not a torch.Tensor, for {where}"
     if tuple(answer.shape) != tuple(points.shape[:-1]):
-        raise ValueError(f"{prefix} returned shape {tuple(answer.shape)} for {where}, expected "
-                         f"{tuple(points.shape[:-1])}")
+        return (f"{method} returned shape {tuple(answer.shape)} for {where}, expected "
+                f"{tuple(points.shape[:-1])}")
     if kind == "bool" and answer.dtype != torch.bool:
-        raise ValueError(f"{prefix} returned dtype {answer.dtype} for {where}, expected "
-                         f"torch.bool")
+        return f"{method} returned dtype {answer.dtype} for {where}, expected torch.bool"
     if kind == "float":
         if not answer.is_floating_point():
-            raise ValueError(f"{prefix} returned dtype {answer.dtype} for {where}, expected a "
-                             f"floating-point tensor")
+            return (f"{method} returned dtype {answer.dtype} for {where}, expected a "
+                    f"floating-point tensor")
         bad = torch.isnan(answer) | torch.isneginf(answer)
         if bad.any():
             index = tuple(int(i) for i in torch.nonzero(bad)[0])
             x, y = (float(v) for v in points[index])
             value = "NaN" if torch.isnan(answer[index]) else "-inf"
-            raise ValueError(f"{prefix} returned {value} at ({x:g}, {y:g}) for {where}")
+            return f"{method} returned {value} at ({x:g}, {y:g}) for {where}"
+    return None
+
+
+class ZoneCheckError(RuntimeError):
+    """A plug-in zone check failed in use, where the load probe had found it sound: it raised,
+    or answered a NaN or -inf distance, a wrong shape or type. Where the zones are cannot be
+    told, so nothing planned or guarded with them may go out."""
+
+
+class CheckedArea(RestrictedArea):
+    """A plug-in's area (`plugin`, named `spec` in the scenario or parameters) whose every
+    answer is checked as the load probe checks it, so that a check that turns bad in use (NaN
+    after a while, an exception) raises `ZoneCheckError` naming the spec and the fault.
+
+    Unchecked, a NaN distance compares false everywhere: the hooks and the shield would take
+    the zone for absent, or plan NaN waypoints that hold the pusher without a word why. What
+    the plug-in's class overrides is asked of it (and what it derives, checked in turn); the
+    rest is derived from the checked distance, as for any area. Its other attributes (a
+    camera's `polygons`) read through."""
+
+    def __init__(self, plugin: RestrictedArea, spec: str) -> None:
+        self.plugin, self.spec = plugin, spec
+
+    def __getattr__(self, name: str) -> Any:
+        if name.startswith("__") or name in ("plugin", "spec"):  # unpickling: not set yet
+            raise AttributeError(name)
+        return getattr(self.plugin, name)
+
+    def __repr__(self) -> str:
+        return f"{self.spec} ({self.plugin!r})"
+
+    def signed_distance(self, points: Tensor) -> Tensor:
+        answer = self._ask("signed_distance", points)
+        if not (isinstance(answer, Tensor) and answer.is_floating_point()
+                and answer.shape == points.shape[:-1] and bool((answer > -math.inf).all())):
+            self._refuse("signed_distance", "float", answer, points)
+        return answer
+
+    def contains(self, points: Tensor) -> Tensor:
+        if not self._own("contains"):
+            return super().contains(points)
+        answer = self._ask("contains", points)
+        if not (isinstance(answer, Tensor) and answer.dtype == torch.bool
+                and answer.shape == points.shape[:-1]):
+            self._refuse("contains", "bool", answer, points)
+        return answer
+
+    def outward_direction(self, points: Tensor) -> Tensor:
+        if not self._own("outward_direction"):
+            return super().outward_direction(points)
+        return self._finite("outward_direction", points)
+
+    def inside_and_outward(self, points: Tensor) -> tuple[Tensor, Tensor | None]:
+        if not self._own("inside_and_outward"):
+            return super().inside_and_outward(points)
+        return self._finite("inside_and_outward", points)
+
+    def project_out(self, points: Tensor, margin: float = 0.0) -> Tensor:
+        if not self._own("project_out"):
+            return super().project_out(points, margin)
+        return self._finite("project_out", points, margin)
+
+    def segment_clear_fraction(self, starts: Tensor, ends: Tensor) -> Tensor:
+        if not self._own("segment_clear_fraction"):
+            return super().segment_clear_fraction(starts, ends)
+        return self._finite("segment_clear_fraction", starts, ends)
+
+    def crosses(self, starts: Tensor, ends: Tensor) -> Tensor:
+        if not self._own("crosses"):
+            return super().crosses(starts, ends)
+        return self._finite("crosses", starts, ends)
+
+    def select_rows(self, rows: Tensor) -> RestrictedArea:
+        return self._derive(self._ask("select_rows", rows)) if self._own("select_rows") \
+            else self
+
+    def near(self, points: Tensor, reach: float) -> RestrictedArea:
+        return self._derive(self._ask("near", points, reach)) if self._own("near") else self
+
+    def _inflated(self, radius: float) -> RestrictedArea:
+        if self._own("_inflated") or self._own("inflate"):
+            return self._derive(self._ask("inflate", radius))
+        return super()._inflated(radius)
+
+    def _bounded(self, workspace: Bounds) -> RestrictedArea:
+        if self._own("_bounded") or self._own("bounded"):
+            return self._derive(self._ask("bounded", workspace))
+        return super()._bounded(workspace)
+
+    def _own(self, method: str) -> bool:
+        """The plug-in's class overrides RestrictedArea's `method`."""
+        return getattr(type(self.plugin), method) is not getattr(RestrictedArea, method)
+
+    def _ask(self, method: str, *args: Any) -> Any:
+        try:
+            return getattr(self.plugin, method)(*args)
+        except ZoneCheckError:
+            raise
+        except Exception as error:  # a user's class may fail any way: one line
+            raise ZoneCheckError(f"zone check {self.spec!r}: {method} failed "
+                                 f"({_one_line(error)})") from error
+
+    def _refuse(self, method: str, kind: str, answer: Any, points: Tensor) -> None:
+        where = f"{getattr(points, 'dtype', type(points).__name__)} points of shape " \
+                f"{tuple(points.shape)}"
+        fault = _answer_fault(method, kind, answer, points, where)
+        raise ZoneCheckError(f"zone check {self.spec!r}: {fault or method + ' failed'}")
+
+    def _finite(self, method: str, *args: Any) -> Any:
+        """What the plug-in's own `method` answers: tensors, each boolean or finite."""
+        answer = self._ask(method, *args)
+        for part in answer if isinstance(answer, tuple) else (answer,):
+            if part is None or (isinstance(part, Tensor) and (
+                    part.dtype == torch.bool or bool(torch.isfinite(part).all()))):
+                continue
+            what = "a non-finite tensor" if isinstance(part, Tensor) else \
+                f"a {type(part).__name__}"
+            raise ZoneCheckError(f"zone check {self.spec!r}: {method} returned {what}")
+        return answer
+
+    def _derive(self, area: Any) -> RestrictedArea:
+        if area is self.plugin:
+            return self
+        if not isinstance(area, RestrictedArea):
+            raise ZoneCheckError(f"zone check {self.spec!r}: derived a {type(area).__name__}, "
+                                 f"not a RestrictedArea")
+        return CheckedArea(area, self.spec)
 
 
 def load_area(spec: str, parameters: Mapping[str, Any] | None = None, *,
-              workspace: Bounds = PUSHT_WORKSPACE) -> RestrictedArea:
+              workspace: Bounds = PUSHT_WORKSPACE) -> CheckedArea:
     """Build the restricted area `spec` names, calling it with `parameters` as keywords.
 
     `spec` is "package.module:Class" (a dotted attribute path after the colon works too), its
@@ -188,6 +318,7 @@ def load_area(spec: str, parameters: Mapping[str, Any] | None = None, *,
     the spec, for a module not allowed (before importing it), a missing module or attribute,
     anything but such a class, parameters the class refuses (TypeError) or any other failure
     to build it, and an answer on the probe points that is not a finite (or +inf) distance.
+    The area comes as a `CheckedArea`: an answer as bad in use raises `ZoneCheckError`.
     """
     if not isinstance(spec, str) or not spec.strip():
         raise ValueError(f"restricted area spec must be a non-empty string, got {spec!r}")
@@ -210,4 +341,4 @@ def load_area(spec: str, parameters: Mapping[str, Any] | None = None, *,
                          f"RestrictedArea (subclass constrained_diffusion_ros.zones."
                          f"RestrictedArea and implement signed_distance)")
     _check_answers(spec, area, workspace)
-    return area
+    return CheckedArea(area, spec)

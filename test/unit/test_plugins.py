@@ -7,6 +7,7 @@ import contextlib
 import importlib
 import inspect
 import os
+import pickle
 import runpy
 import subprocess
 import sys
@@ -30,6 +31,8 @@ from constrained_diffusion_ros.zones import RestrictedArea, ZoneSet
 from constrained_diffusion_ros.zones.plugins import (
     ENTRY_POINT_GROUP,
     PLUGIN_MODULES_ENV,
+    CheckedArea,
+    ZoneCheckError,
     load_area,
     probe_points,
 )
@@ -137,7 +140,8 @@ def test_malformed_camera_files_are_refused(tmp_path: Path) -> None:
 
 def test_load_area_by_module_path_builds_the_class_with_the_parameters() -> None:
     area = load_area(CAMERA, {"config_file": "camera_zones.yaml"})
-    assert isinstance(area, CameraZones) and isinstance(area, RestrictedArea)
+    assert isinstance(area, CheckedArea) and isinstance(area.plugin, CameraZones)
+    assert area.polygons is area.plugin.polygons  # what the class offers besides, read through
     assert area.contains(torch.tensor([256.0, 256.0])).item()
 
 
@@ -185,7 +189,7 @@ def test_load_area_by_entry_point_name(tmp_path: Path, monkeypatch: pytest.Monke
                                            + "\nbroken = no_such_package.zones:Area\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     area = load_area("camera_zones", {"config_file": "camera_zones.yaml"})
-    assert isinstance(area, CameraZones)
+    assert isinstance(area.plugin, CameraZones)
     with pytest.raises(ValueError, match=r"'broken': entry point .* does not load"):
         load_area("broken", {})
     with pytest.raises(ValueError, match=r"known: .*camera_zones"):
@@ -390,7 +394,7 @@ def test_entry_points_are_held_to_the_same_rule(
         load_area("runner", {"args": ["touch", victims["pwned"]]})
     with pytest.raises(ValueError, match=r"'module': entry point 'os' does not load .*module"):
         load_area("module", {})
-    assert isinstance(load_area("fine", {}), InfArea)
+    assert isinstance(load_area("fine", {}).plugin, InfArea)
 
 
 IMPORTED = "imported"  # what a module of test_a_module_is_imported_only_if_allowed prints
@@ -477,7 +481,7 @@ def test_the_probe_covers_the_workspace_it_is_given() -> None:
     assert points[25].tolist() == pytest.approx([153.6, 358.4])
     assert points[26:].tolist() == [[-16, 256], [528, 256], [256, -16], [256, 528]]
     RecordingArea.asked.clear()
-    assert isinstance(load_area(f"{HERE}:RecordingArea", workspace=(100, 50, 200, 90)),
+    assert isinstance(load_area(f"{HERE}:RecordingArea", workspace=(100, 50, 200, 90)).plugin,
                       RecordingArea)
     asked = torch.cat(RecordingArea.asked)
     assert asked.amin(dim=0).tolist() == [84, 50 - 16] and asked.amax(dim=0).tolist() == [216,
@@ -485,6 +489,86 @@ def test_the_probe_covers_the_workspace_it_is_given() -> None:
     assert torch.isinf(load_area(f"{HERE}:InfArea").signed_distance(points)).all()
     empty = ZoneSet.from_polygons([])
     assert torch.isposinf(empty.signed_distance(points)).all()  # what InfArea stands for
+
+
+# -- A check that turns bad in use (issue 41) ---------------------------------------------------
+
+class TurnsNaN(RestrictedArea):
+    """A disc of radius 50 at (256, 256) whose distances turn NaN after `after` queries: it
+    passes the load probe (8 queries), and fails later."""
+
+    def __init__(self, after: int = 8) -> None:
+        self.after, self.calls = after, 0
+
+    def signed_distance(self, points: Tensor) -> Tensor:
+        self.calls += 1
+        distance = (points - 256.0).norm(dim=-1) - 50.0
+        return distance if self.calls <= self.after else torch.full_like(distance, torch.nan)
+
+
+class TurnsRaising(TurnsNaN):
+    def signed_distance(self, points: Tensor) -> Tensor:
+        if self.calls >= self.after:
+            raise RuntimeError("camera\nunplugged")
+        return super().signed_distance(points)
+
+
+class OwnContains(TurnsNaN):
+    """Answers `contains` itself: a float tensor once it has turned."""
+
+    def contains(self, points: Tensor) -> Tensor:
+        inside = self.signed_distance(points) < 0
+        return inside if self.calls <= self.after else inside.double()
+
+
+def test_a_check_that_turns_bad_in_use_raises_naming_the_spec_and_the_fault() -> None:
+    """Found by finding 5 of issue 41: a plug-in that turned NaN after the load probe was never
+    named; a NaN distance compares false, so the planner took the zone for absent or planned
+    NaN waypoints. Every answer is checked in use as the probe checks it, the derived areas'
+    too, and the fault is one line naming the spec."""
+    spec = f"{HERE}:TurnsNaN"
+    area = load_area(spec, {"after": 9})
+    points = torch.tensor([[256.0, 256.0], [400.0, 256.0], [300.0, 256.0]])
+    torch.testing.assert_close(area.signed_distance(points), torch.tensor([-50.0, 94.0, -6.0]))
+    for query in (area.signed_distance, area.contains, area.inflate(5.0).contains,
+                  area.bounded((0.0, 0.0, 512.0, 512.0)).signed_distance,
+                  area.select_rows(torch.tensor([0])).near(points, 10.0).contains,
+                  lambda p: area.project_out(p, 2.0)):
+        with pytest.raises(ZoneCheckError) as raised:
+            query(points)
+        assert str(raised.value) in (f"zone check {spec!r}: signed_distance returned NaN at "
+                                     f"(256, 256) for torch.{dtype} points of shape (3, 2)"
+                                     for dtype in ("float32", "float64"))  # project_out's
+    raising = load_area(f"{HERE}:TurnsRaising", {"after": 8})
+    with pytest.raises(ZoneCheckError, match=r"signed_distance failed \(RuntimeError: camera "
+                                             r"unplugged\)$"):
+        raising.crosses(points, points + 1.0)
+    own = load_area(f"{HERE}:OwnContains", {"after": 9})
+    assert own.contains(points).tolist() == [True, False, True]
+    with pytest.raises(ZoneCheckError, match=r"contains returned dtype torch.float64 for "
+                                             r"torch.float32 points of shape \(3, 2\), expected "
+                                             r"torch.bool"):
+        own.contains(points)
+
+
+def test_a_checked_area_answers_as_its_plug_in_and_stays_checked_in_a_planning_process(
+        ) -> None:
+    """The camera overrides every query and derives exact zone sets: checked, it answers bit
+    for bit as it does alone, and pickled (as it goes to a planning process) it is checked
+    still."""
+    area = load_area(CAMERA, {"config_file": "camera_zones.yaml"})
+    camera = area.plugin
+    points = torch.rand(4, 7, 2, dtype=torch.float64) * 512
+    for checked, alone in ((area, camera), (area.bounded((0, 0, 512, 512)).inflate(15.0),
+                                            camera.bounded((0, 0, 512, 512)).inflate(15.0))):
+        assert torch.equal(checked.signed_distance(points), alone.signed_distance(points))
+        assert torch.equal(checked.project_out(points, 3.0), alone.project_out(points, 3.0))
+        assert torch.equal(checked.segment_clear_fraction(points, points.flip(0)),
+                           alone.segment_clear_fraction(points, points.flip(0)))
+    copy = pickle.loads(pickle.dumps(load_area(f"{HERE}:TurnsNaN", {"after": 8})))
+    assert isinstance(copy, CheckedArea) and isinstance(copy.plugin, TurnsNaN)
+    with pytest.raises(ZoneCheckError, match="returned NaN"):
+        copy.contains(points)
 
 
 # The property: any stdlib attribute, with any parameters, is refused without being called.

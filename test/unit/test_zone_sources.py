@@ -49,7 +49,7 @@ def test_the_camera_scenario_queries_the_plugin_and_publishes_its_polygons(
         scenarios: dict[str, Scenario]) -> None:
     camera = scenarios["camera_center"]
     area = camera.zones_at(0)
-    assert isinstance(area, CameraZones) and camera.zones_at(150) is area
+    assert isinstance(area.plugin, CameraZones) and camera.zones_at(150) is area
     assert not camera.moving
     assert len(camera.polygons) == 1
     np.testing.assert_allclose(camera.polygons_at(0)[0], area.polygons[0])

@@ -22,12 +22,17 @@ the background and deliver whenever the plan is done. Whatever the worker, the r
 - a row without a waypoint holds its last setpoint;
 - every setpoint passes the guard against the zones in force: a waypoint planned before them
   that they now refuse is moved out of them first (`keep_out`), then the planner's guard (the
-  shield) has the last word.
+  shield) has the last word;
+- a plug-in zone check that fails in use (`ZoneCheckError`: it raised, or answered NaN), in
+  planning or in the guard, leaves the zones unknown: every row stops where its pusher is until
+  the check answers again, and the fault is kept for `status` and logged, naming the check.
 """
 
 from __future__ import annotations
 
+import logging
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
@@ -48,7 +53,10 @@ from constrained_diffusion_ros.planning.thread_worker import PlanningThread
 from constrained_diffusion_ros.zones.area import RestrictedArea
 from constrained_diffusion_ros.zones.geometry import leaves_no_room
 from constrained_diffusion_ros.zones.live import LiveZones
+from constrained_diffusion_ros.zones.plugins import ZoneCheckError
 
+LOGGER = logging.getLogger(__name__)
+FAULT_LOG_PERIOD_S = 10.0  # a zone check's fault, said again at most this often
 HANDOVERS = ("sync", "async", "async_prefix")
 EVERY_TICK = "every_tick"  # a simulated schedule: async_prefix, a plan asked at every tick
 
@@ -156,6 +164,11 @@ class ChunkLoop:
         self.step: int | None = None  # the newest observation's control step
         self.queue = ActionQueue(0, self.n_action_steps)  # an episode's rows from its start
         self.skipped_before = 0  # waypoints skipped in the episodes before
+        self.zone_check_error: ZoneCheckError | None = None  # the last fault of a zone check
+        self.zone_check_errors = 0  # faults so far (in the loop, or seen from the worker)
+        self.zone_check_failed = False  # the last call met one: the pushers stopped
+        self._seen_worker_error: BaseException | None = None
+        self._said_at: float | None = None  # when a zone check's fault was logged last
 
     @classmethod
     def simulated(cls, planner: ChunkPlanner, zones: ZoneSource | None = None,
@@ -197,6 +210,9 @@ class ChunkLoop:
         setpoints to execute, (B, 2) (or (2,)). An earlier step than the newest starts a new
         episode. Also kept: `setpoints`, `wanted` (before the guard), `waiting` (rows with no
         waypoint), `handed_over` (rows whose setpoint is a new chunk's first)."""
+        return self._checked(self._observe, step, observations)
+
+    def _observe(self, step: int, observations: np.ndarray) -> np.ndarray:
         self.single = np.ndim(observations) == 1
         observations = np.atleast_2d(observations)
         if self.step is not None and step < self.step:
@@ -246,6 +262,9 @@ class ChunkLoop:
         refuse, or the rest of whose chunk they enter, asks for a new plan then."""
         if self.step is None:
             return None
+        return self._checked(self._zones_changed)
+
+    def _zones_changed(self) -> np.ndarray | None:
         before = self.setpoints
         after = self._update()
         moved = (after != before).any(axis=-1)
@@ -262,6 +281,9 @@ class ChunkLoop:
         or None if no plan came."""
         if self.step is None:
             return None
+        return self._checked(self._install_results)
+
+    def _install_results(self) -> np.ndarray | None:
         results = self._take_results()
         self._install(results)
         self._ask_due()
@@ -302,8 +324,10 @@ class ChunkLoop:
 
     def status(self) -> dict[str, object]:
         """The loop's and its worker's counters, for diagnostics (`planning_error`: the
-        worker's last fault, or None), and the first row's state: `holding` its last setpoint
-        (no waypoint), `shielded` (the setpoint is not the waypoint: the filter changed it)."""
+        worker's last fault, or None; `zone_check_error`: a plug-in zone check's last fault,
+        or "", `zone_check_failed` while it stops the pushers), and the first row's state:
+        `holding` its last setpoint (no waypoint), `shielded` (the setpoint is not the
+        waypoint: the filter changed it)."""
         stats, worker = self.stats, self.worker
         started = self.history is not None
         return {"holding": started and bool(self.waiting[0]),  # no waypoint: the last held
@@ -315,12 +339,46 @@ class ChunkLoop:
                 "zone_reactions": stats.zone_reactions,
                 "lead": self.lead, "planning_priority": worker.priority,
                 "planning_errors": worker.errors, "planning_failed": worker.failed,
-                "planning_restarts": worker.restarts, "planning_error": worker.error}
+                "planning_restarts": worker.restarts, "planning_error": worker.error,
+                "zone_check_errors": self.zone_check_errors,
+                "zone_check_failed": self.zone_check_failed or (
+                    worker.failed and isinstance(worker.error, ZoneCheckError)),
+                "zone_check_error": str(self.zone_check_error or "")}
 
     def shutdown(self) -> None:
         self.worker.shutdown()
 
     # -- internals ---------------------------------------------------------------------------
+
+    def _checked(self, call: Callable[..., np.ndarray | None], *args: object
+                 ) -> np.ndarray | None:
+        """`call(*args)`, unless a plug-in zone check fails in it: then every row stops where
+        its pusher is (no setpoint planned or guarded with zones that cannot be told goes out),
+        and the stop is the answer. A fault the worker met planning is taken up here too."""
+        try:
+            answer = call(*args)
+            self.zone_check_failed = False
+        except ZoneCheckError as error:
+            self._zone_check_fault(error)
+            self.zone_check_failed = True
+            self.setpoints = self.planner.robot.pusher(self.history.latest).astype(float)
+            self.wanted, self.waiting = self.setpoints.copy(), np.ones(len(self.setpoints), bool)
+            answer = self._answer(self.setpoints)
+        error = getattr(self.worker, "error", None)  # (a test's stand-in may keep none)
+        if isinstance(error, ZoneCheckError) and error is not self._seen_worker_error:
+            self._seen_worker_error = error
+            self._zone_check_fault(error)
+        return answer
+
+    def _zone_check_fault(self, error: ZoneCheckError) -> None:
+        """Kept for `status` and logged at ERROR, at most once per FAULT_LOG_PERIOD_S: a check
+        that turned NaN fails at every plan and every step (where, differing each time)."""
+        self.zone_check_error, self.zone_check_errors = error, self.zone_check_errors + 1
+        now = time.monotonic()
+        if self._said_at is None or now - self._said_at >= FAULT_LOG_PERIOD_S:
+            self._said_at = now
+            LOGGER.error("%s: the pusher stops until it answers again (%d fault(s) so far)",
+                         error, self.zone_check_errors)
 
     def _start(self, observations: np.ndarray) -> None:
         batch = len(observations)

@@ -7,12 +7,14 @@ as it runs (`StandstillMeter`), with one definition.
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import numpy as np
 import torch
 
 from constrained_diffusion_ros.zones.area import RestrictedArea
+from constrained_diffusion_ros.zones.plugins import ZoneCheckError
 
 STANDSTILL_STEPS = 5  # a standstill: at least this many control steps in a row
 STANDSTILL_PX = 0.5  # of motion per step at most
@@ -68,9 +70,12 @@ class StandstillCounts:
     def observe(self, pusher: np.ndarray, moved: float | None, area: RestrictedArea | None,
                 radius: float, waiting: bool) -> None:
         """One observed step: the pusher at `pusher` moved `moved` px (None: a new episode),
-        with the zones `area` in force (None: none)."""
-        clearance = math.inf if area is None else \
-            float(area.signed_distance(torch.from_numpy(pusher[None]))[0])
+        with the zones `area` in force (None: none; a plug-in check that fails counts as
+        none here: the chunk loop reports it)."""
+        clearance = math.inf
+        if area is not None:
+            with contextlib.suppress(ZoneCheckError):
+                clearance = float(area.signed_distance(torch.from_numpy(pusher[None]))[0])
         self.update(moved, clearance, radius, waiting)
 
     def status(self, control_hz: float) -> dict[str, object]:

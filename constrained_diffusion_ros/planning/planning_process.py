@@ -47,6 +47,7 @@ from constrained_diffusion_ros.planning.plan_jobs import (
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.sampling.sampler import Interrupted
 from constrained_diffusion_ros.zones.area import RestrictedArea
+from constrained_diffusion_ros.zones.plugins import ZoneCheckError
 
 LOGGER = logging.getLogger(__name__)
 
@@ -314,6 +315,12 @@ class PlanningProcess:
         self._sent_zones = job.zones
 
     def _fail(self, message: str) -> None:
+        """A fault, kept in `error`: a zone check's as the `ZoneCheckError` it was in the child
+        (the chunk loop says it, and stops the pusher), any other logged here."""
+        zone_check = message.removeprefix(f"{ZoneCheckError.__name__}: ")
+        if zone_check != message:
+            self.error, self.errors, self.failed = ZoneCheckError(zone_check), self.errors + 1, True
+            return
         self.error, self.errors, self.failed = RuntimeError(message), self.errors + 1, True
         LOGGER.error("planning process: %s", message)
 

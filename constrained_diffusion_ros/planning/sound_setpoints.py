@@ -10,6 +10,7 @@ import torch
 from constrained_diffusion_ros.planning.robot import RobotModel
 from constrained_diffusion_ros.zones.geometry import leaves_no_room
 from constrained_diffusion_ros.zones.live import LiveZones
+from constrained_diffusion_ros.zones.plugins import ZoneCheckError
 
 
 class SoundSetpoints:
@@ -36,11 +37,26 @@ class SoundSetpoints:
             return setpoint
         self.unsound += 1
         last = self.last_sound
-        if not self.no_free_space and last is not None and not self.inside_zone(last):
+        if not self.no_free_space and last is not None and self._clear(last):
             return last
         x_min, y_min, x_max, y_max = self.robot.workspace
         return np.clip(pusher, (x_min, y_min), (x_max, y_max))
 
     def inside_zone(self, point: np.ndarray) -> bool:
+        """Whether `point` lies in a zone; False where a plug-in check cannot tell (the chunk
+        loop reports its fault, and has stopped the pusher)."""
+        try:
+            return self._inside(point)
+        except ZoneCheckError:
+            return False
+
+    def _clear(self, point: np.ndarray) -> bool:
+        """Whether `point` is known to lie outside every zone."""
+        try:
+            return not self._inside(point)
+        except ZoneCheckError:
+            return False
+
+    def _inside(self, point: np.ndarray) -> bool:
         area = self.zones.area_at(0)
         return area is not None and bool(area.contains(torch.tensor(point[None]))[0])

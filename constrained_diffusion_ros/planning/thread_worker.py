@@ -23,6 +23,7 @@ from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult, pl
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.sampling.sampler import Interrupted
 from constrained_diffusion_ros.zones.newest_job import NewestJobThread
+from constrained_diffusion_ros.zones.plugins import ZoneCheckError
 
 LOGGER = logging.getLogger(__name__)
 
@@ -106,6 +107,8 @@ class PlanningThread(NewestJobThread):
                 self._on_result(PlanResult(job, chunk, time.perf_counter() - began))
             except Interrupted:
                 self.cancelled += 1
+            except ZoneCheckError as error:  # said by the chunk loop, which stops the pusher
+                self.error, self.errors, self.failed = error, self.errors + 1, True
             except Exception as error:  # reported by the owner; the worker keeps serving
                 self.error, self.errors, self.failed = error, self.errors + 1, True
                 LOGGER.exception("planning failed")

@@ -4,6 +4,8 @@ plan, the planning workers, and the chunk loop with a simulated delay and live."
 from __future__ import annotations
 
 import contextlib
+import logging
+import math
 import os
 import pickle
 import socket
@@ -44,6 +46,7 @@ from constrained_diffusion_ros.policy.weights import save_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.sampling.sampler import Interrupted
 from constrained_diffusion_ros.zones import LiveZones, rectangle
+from constrained_diffusion_ros.zones.plugins import PLUGIN_MODULES_ENV, ZoneCheckError, load_area
 
 
 def test_a_plan_installed_late_skips_the_waypoints_whose_time_has_passed() -> None:
@@ -650,6 +653,90 @@ def until(condition, timeout: float) -> bool:
             return False
         threading.Event().wait(0.02)
     return True
+
+
+TURNS_NAN = """
+import torch
+from constrained_diffusion_ros.zones import RestrictedArea
+
+
+class TurnsNaN(RestrictedArea):
+    \"\"\"A disc at (256, 256) whose distances turn NaN after `after` queries.\"\"\"
+
+    def __init__(self, after):
+        self.after, self.calls = after, 0
+
+    def signed_distance(self, points):
+        self.calls += 1
+        distance = (points - 256.0).norm(dim=-1) - 60.0
+        return distance if self.calls <= self.after else torch.full_like(distance, torch.nan)
+"""
+TURNS_NAN_SPEC = "turns_nan_zones:TurnsNaN"
+
+
+@pytest.fixture
+def turns_nan(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """TURNS_NAN as a user's plug-in module, allowed, importable here and by a planning child."""
+    (tmp_path / "turns_nan_zones.py").write_text(TURNS_NAN)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(
+        filter(None, [str(tmp_path), os.environ.get("PYTHONPATH")])))
+    monkeypatch.setenv(PLUGIN_MODULES_ENV, "turns_nan_zones")
+
+
+def test_a_zone_check_that_turns_nan_stops_the_pushers_and_is_said_once(
+        tiny_policy: DiffusionPolicy, turns_nan: None, caplog: pytest.LogCaptureFixture) -> None:
+    """Found by finding 5 of issue 41: a plug-in that turned NaN after the load probe held the
+    pusher (NaN waypoints read as none) or was taken for no zone at all, and nothing named it.
+    The loop stops every pusher where it is while the check fails, keeps the fault (named) for
+    the status, logs it once however often it recurs, and moves again once it answers; a
+    fault the worker met planning is taken up too."""
+    area = load_area(TURNS_NAN_SPEC, {"after": 10**9})
+    zones = LiveZones(fixed=area, workspace=PUSHT_ROBOT.workspace)
+    loop = ChunkLoop.simulated(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT), zones,
+                               torch.Generator().manual_seed(0), noise_seed=0)
+    observation = np.full(CONFIG.obs_dim, 100.0, dtype=np.float32)  # the pusher at (100, 100)
+    moving = [loop.observe(step, observation) for step in range(3)]
+    assert not loop.status()["zone_check_failed"] and np.isfinite(moving).all()
+    assert any((setpoint != 100.0).any() for setpoint in moving)
+    area.plugin.after = area.plugin.calls  # NaN from the next query on
+    with caplog.at_level(logging.ERROR, logger="constrained_diffusion_ros.planning.chunk_loop"):
+        stopped = [loop.observe(step, observation) for step in range(3, 13)]
+    assert np.array_equal(stopped, np.full((10, 2), 100.0))
+    status = loop.status()
+    assert status["zone_check_failed"] and status["holding"]
+    assert status["zone_check_errors"] == 10
+    assert status["zone_check_error"].startswith(
+        f"zone check {TURNS_NAN_SPEC!r}: signed_distance returned NaN at (")
+    said = [record.getMessage() for record in caplog.records]
+    assert len(said) == 1 and said[0].startswith(status["zone_check_error"][:60]), said
+    area.plugin.after = math.inf  # it answers again
+    loop.observe(13, observation)
+    status = loop.status()
+    assert not status["zone_check_failed"] and status["zone_check_errors"] == 10
+    loop.worker.error = ZoneCheckError(f"zone check {TURNS_NAN_SPEC!r}: contains failed")
+    loop.observe(14, observation)
+    assert loop.status()["zone_check_errors"] == 11
+    assert loop.status()["zone_check_error"].endswith("contains failed")
+
+
+def test_a_zone_check_fault_in_the_planning_process_comes_back_as_one(
+        tiny_policy: DiffusionPolicy, turns_nan: None) -> None:
+    """The child plans with the zones it was sent; a check failing there comes back as the
+    `ZoneCheckError` it was, so the loop knows it for what it is."""
+    area = load_area(TURNS_NAN_SPEC, {"after": 8})  # the load probe's 8: NaN at the next
+    worker = PlanningProcess(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT),
+                             lambda result: None, idle=False)
+    try:
+        worker.submit(PlanJob(1, 0, torch.full((1, 2, 20), 200.0), area, 0, None))
+        deadline = time.monotonic() + 60
+        while worker.errors == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert isinstance(worker.error, ZoneCheckError) and worker.failed
+        assert str(worker.error).startswith(
+            f"zone check {TURNS_NAN_SPEC!r}: signed_distance returned NaN at (")
+    finally:
+        worker.shutdown()
 
 
 def observations_at(step: int, batch: int = 2) -> np.ndarray:

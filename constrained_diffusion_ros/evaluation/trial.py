@@ -4,7 +4,8 @@ Starts the recorder, the simulator (lockstep), the zone publisher and the policy
 launch file would, in a ROS domain of its own; waits until they have discovered each other;
 resets the scene to the seed; lets the policy act for the requested number of control steps;
 waits until the bag holds every step and every topic the trial heard (a warning names what it
-still lacks after RECORDING_GRACE_S); stops every process cleanly; prints score and violations;
+still lacks after RECORDING_GRACE_S); stops every process cleanly; prints score and violations
+(and fails, naming it, if the policy said on /diagnostics that its plug-in zone check failed);
 and leaves, in the output directory, the rosbag2 (MCAP) bag with the trial's metadata, a strip
 of frames (PNG, like the paper's Fig. 1) and an animated GIF.
 """
@@ -126,6 +127,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def run_trial(args: argparse.Namespace) -> dict:
     import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PointStamped, PoseStamped
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
@@ -189,6 +191,16 @@ def run_trial(args: argparse.Namespace) -> dict:
         MarkerArray, TOPICS["zone_markers"].name,
         lambda msg: zones_in_force.append(zones_shown(msg)),
         qos_profile(TOPICS["zone_markers"]))
+    zone_check_errors: list[str] = []  # what the policy said of its plug-in check, if it failed
+
+    def diagnosed(msg) -> None:
+        for status in msg.status:
+            said = next((kv.value for kv in status.values if kv.key == "zone_check_error"), "")
+            if said and said not in zone_check_errors:
+                zone_check_errors.append(said)
+
+    node.create_subscription(DiagnosticArray, TOPICS["diagnostics"].name, diagnosed,
+                             qos_profile(TOPICS["diagnostics"], "recorder"))
     reset = node.create_client(Trigger, SERVICES["reset"].name)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
@@ -286,6 +298,9 @@ def run_trial(args: argparse.Namespace) -> dict:
             print(f"trial: warning: the bag still lacks {', '.join(missing)} "
                   f"{RECORDING_GRACE_S:.0f} s after the last step (see {output}/recorder.log)",
                   file=sys.stderr)
+        if zone_check_errors:  # the first fault, in the bag's metadata too
+            metadata["zone_check_error"] = zone_check_errors[0]
+            metadata_file.write_text(json.dumps(metadata, indent=2))
     finally:
         for name in ("policy_node", "zone_publisher", "sim_node"):
             children.stop(name)
@@ -392,6 +407,10 @@ def run(args: argparse.Namespace) -> int:
           f"{results.get('r_body', 0):.0f}")
     print(f"wrote {output}/bag (rosbag2, MCAP), {output}/frames.png, {output}/trial.gif, "
           f"{output}/scene.mcap (the scene for the Foxglove app)")
+    if "zone_check_error" in metadata:  # the pusher was stopped: the score is not the policy's
+        print(f"trial: failed: the policy's plug-in zone check failed during the trial: "
+              f"{metadata['zone_check_error']}", file=sys.stderr)
+        return TRIAL_FAILED
     return 0
 
 

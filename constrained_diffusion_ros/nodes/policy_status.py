@@ -1,6 +1,7 @@
 """The policy node's status on `/diagnostics`: its counters as key-values, and a level from their
-rise since the last report (ERROR for a setpoint inside a zone, no sound setpoint or planning
-that failed; WARN for refused input or planning that missed its deadline)."""
+rise since the last report (ERROR for a setpoint inside a zone, no sound setpoint, a plug-in zone
+check that failed in use or planning that failed; WARN for refused input or planning that missed
+its deadline)."""
 
 from __future__ import annotations
 
@@ -12,9 +13,12 @@ from std_msgs.msg import Header
 
 from msg_schemas import TOPICS, qos_profile
 
+# The chunk loop's word on a plug-in zone check (`ChunkLoop.status`), in every mode.
+ZONE_CHECK_KEYS = ("zone_check_errors", "zone_check_failed", "zone_check_error")
 # Their rise since the last report sets the diagnostic level.
 HEALTH_COUNTERS = ("violations", "unsound_setpoints", "zones_refused", "masks_refused",
-                   "observations_refused", "late_steps", "planning_errors")
+                   "observations_refused", "late_steps", "planning_errors",
+                   "zone_check_errors")
 
 
 class StatusReporter:
@@ -27,12 +31,20 @@ class StatusReporter:
         self._counts: dict[str, int] = {}
 
     def publish(self, values: dict[str, object]) -> None:
+        values = {**self._zone_check(), **values}
         level, message = self.health(values)
         status = DiagnosticStatus(level=level, name=self.node.get_fully_qualified_name(),
                                   message=message, hardware_id="pusht")
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         stamp = self.node.get_clock().now().to_msg()
         self.publisher.publish(DiagnosticArray(header=Header(stamp=stamp), status=[status]))
+
+    def _zone_check(self) -> dict[str, object]:
+        """The chunk loop's zone-check keys: a node that leaves the loop's status out of its
+        values (lockstep) still says when a plug-in check fails and stops the pusher."""
+        loop = getattr(self.node, "loop", None)
+        status = loop.status() if loop is not None else {}
+        return {key: status[key] for key in ZONE_CHECK_KEYS if key in status}
 
     def health(self, values: dict) -> tuple[bytes, str]:
         """The diagnostic level since the last report: ERROR if a setpoint sent was inside a
@@ -46,6 +58,10 @@ class StatusReporter:
                 f"space, or a non-finite action): the pusher held")
         if since["violations"]:
             return DiagnosticStatus.ERROR, f"{since['violations']} setpoint(s) inside a zone"
+        if since["zone_check_errors"] or values.get("zone_check_failed"):
+            return DiagnosticStatus.ERROR, (
+                f"zone check failed ({values['zone_check_errors']} fault(s)), the pusher "
+                f"stopped: {values['zone_check_error']}")
         if since["planning_errors"] or values.get("planning_failed"):
             # ERROR until a plan arrives again: a planner that died stays news until it plans
             return DiagnosticStatus.ERROR, (

@@ -27,13 +27,16 @@ from msg_schemas import TOPICS
 SEED, STEPS = 100019, 16  # the tiny policy enters the left half there when unconstrained
 
 
-def run_trial_command(output, model, configurations_file, *arguments: str) -> str:
-    """`trial` with fast_safe on the tiny policy, seed SEED, STEPS steps; its output."""
+def run_trial_command(output, model, configurations_file, *arguments: str,
+                      environment: dict[str, str] | None = None, code: int = 0) -> str:
+    """`trial` with fast_safe on the tiny policy, seed SEED, STEPS steps (in `environment`
+    besides the test's), expected to exit with `code`; its output."""
     command = [sys.executable, "-m", "constrained_diffusion_ros.evaluation.trial",
                "--configuration", "fast_safe", "--configurations-file", str(configurations_file),
                "--seed", str(SEED), "--steps", str(STEPS), "--output", str(output), "--model",
                str(model), "--timeout", "60", "--domain-id", str(random_domain_id()), *arguments]
-    process = subprocess.Popen(command, cwd=REPO, env={**os.environ, "OMP_NUM_THREADS": "1"},
+    process = subprocess.Popen(command, cwd=REPO, env={**os.environ, "OMP_NUM_THREADS": "1",
+                                                      **(environment or {})},
                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         out, _ = process.communicate(timeout=90)
@@ -42,7 +45,7 @@ def run_trial_command(output, model, configurations_file, *arguments: str) -> st
             process.send_signal(signal.SIGINT)
             process.communicate(timeout=20)
     logs = "".join(f"\n--- {log.name}\n{log.read_text()}" for log in sorted(output.glob("*.log")))
-    assert process.returncode == 0, out + logs
+    assert process.returncode == code, out + logs
     assert "warning" not in out, out + logs  # e.g. a bag that lacks steps
     return out
 
@@ -154,6 +157,68 @@ def test_a_keepout_grid_and_a_plug_in_check_are_obeyed_like_the_polygons(
         # setpoints to float rounding.
         assert np.abs(commanded - expected_log.commanded[0]).max() <= tolerance
         assert abs(results["s"] - expected.s) <= 0.02
+
+
+TURNS_NAN = """
+import torch
+from constrained_diffusion_ros.zones import RestrictedArea
+
+
+class TurnsNaN(RestrictedArea):
+    \"\"\"A disc whose distances turn NaN after `after` queries (the load probe makes 8).\"\"\"
+
+    def __init__(self, centre, radius, after):
+        self.centre, self.radius, self.after, self.calls = centre, radius, after, 0
+
+    def signed_distance(self, points):
+        self.calls += 1
+        distance = (points - torch.tensor(self.centre, dtype=points.dtype)).norm(dim=-1)
+        distance = distance - self.radius
+        return distance if self.calls <= self.after else torch.full_like(distance, torch.nan)
+"""
+
+
+def test_a_plug_in_that_turns_nan_during_the_trial_is_named_and_fails_it(
+        tiny_model, configurations_file, tmp_path) -> None:
+    """Found by finding 5 of issue 41: a plug-in check that passed the load probe and turned
+    NaN later held the pusher with only "planning missed its deadline" to show for it, and
+    `trial` exited 0 with a score. Now the policy stops the pusher, logs the check's name and
+    the fault once (at ERROR), says it on /diagnostics (ERROR, `zone_check_error`), and the
+    trial fails naming it; no setpoint that goes out is NaN."""
+    (tmp_path / "nan_zones.py").write_text(TURNS_NAN)
+    scenarios = tmp_path / "scenarios.yaml"
+    spec = "nan_zones:TurnsNaN"  # about 100 queries a plan: the first plan is made
+    scenarios.write_text(yaml.safe_dump({"turns_nan": {"plugin": {"class": spec, "parameters": {
+        "centre": [128, 256], "radius": 60, "after": 150}}}}))
+    output = tmp_path / "trial"
+    out = run_trial_command(
+        output, tiny_model, configurations_file, "--scenario", "turns_nan", "--scenarios-file",
+        str(scenarios), code=1, environment={
+            "PYTHONPATH": os.pathsep.join(filter(None, [str(tmp_path), str(REPO),
+                                                        os.environ.get("PYTHONPATH")])),
+            "CONSTRAINED_DIFFUSION_ROS_PLUGIN_MODULES": "nan_zones"})
+    fault = f"zone check {spec!r}: signed_distance returned NaN at ("
+    failed = [line for line in out.splitlines() if line.startswith("trial: failed:")]
+    assert len(failed) == 1 and fault in failed[0], out
+    assert fault in json.loads((output / "trial.json").read_text())["zone_check_error"]
+    said = [line for line in (output / "policy_node.log").read_text().splitlines()
+            if fault in line]
+    assert len(said) == 1 and "ERROR" in said[0], said  # once: the fault repeats every step
+
+    messages = read_messages(output / "bag")
+    statuses = [status for array in messages[TOPICS["diagnostics"].resolved()]
+                for status in array.status]
+    errors = [status for status in statuses if status.level == 2
+              and fault in {kv.key: kv.value for kv in status.values}["zone_check_error"]]
+    assert errors and all("zone check failed" in status.message for status in errors)
+    received = read_trial(output / "bag")
+    commanded = np.array([(received["setpoint"][t].point.x, received["setpoint"][t].point.y)
+                          for t in range(STEPS)])
+    pusher = np.array([(received["pusher"][t].point.x, received["pusher"][t].point.y)
+                       for t in range(STEPS)])
+    assert np.isfinite(commanded).all()
+    stopped = np.all(np.abs(commanded - pusher) < 1e-3, axis=1)  # the pusher's (float32)
+    assert not stopped[0] and stopped[-1]  # the first plan was made, and the check failed later
 
 
 def test_a_bag_being_recorded_is_checked_for_every_step_and_topic_heard(tmp_path) -> None:

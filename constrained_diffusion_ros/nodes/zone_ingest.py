@@ -9,12 +9,15 @@ from its `LiveZones`, as the planner does.
 
 Zones come in as id-keyed polygons, taken in batches as fast as they come and coalesced to the
 last message per id; a malformed one, or one over the caps, is refused with a warning while the
-zones in force stay in force.
+zones in force stay in force. Zones and masks are taken serialized and their length checked
+first (`msg_schemas.capped`): a message longer than the largest the caps allow is refused and
+counted without being read, so no participant can hold the node with a message too big to read.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import time
 from collections import OrderedDict
@@ -34,14 +37,16 @@ from constrained_diffusion_ros.zones.area import Bounds
 from constrained_diffusion_ros.zones.grid import BuiltMask, MaskBuilder, MaskCaps, build_mask
 from constrained_diffusion_ros.zones.live import BatchOutcome, LiveZones
 from msg_schemas import FRAME_ID, SERVICES, TOPICS, qos_profile
+from msg_schemas.capped import mask_message_cap, read_capped, zone_message_cap
 from msg_schemas.conversions import stamp_seconds, zone_markers
 from msg_schemas.text import one_line
 
 ZONE_BATCH_MAX = 10_000  # zone messages taken in one callback at most
 MARKER_NAMESPACE = "zones"  # zone markers: marker namespace <node namespace>/zones, id = zone id
 EXPIRY_PERIOD_S = 0.2  # zones past their lifetime are dropped this often
-COUNTS = ("zone_messages", "zones_applied", "zones_refused", "zones_stale", "zone_batches",
-          "masks_applied", "masks_refused")
+COUNTS = ("zone_messages", "zones_applied", "zones_refused", "zones_oversized", "zones_stale",
+          "zone_batches", "masks_applied", "masks_refused")
+OVERSIZED_LOG_PERIOD_S = 1.0  # a flood of oversized messages is logged this often at most
 
 
 class ZoneIngest:
@@ -62,6 +67,8 @@ class ZoneIngest:
         self.node, self.zones, self.workspace, self.mask_caps = node, zones, workspace, mask_caps
         self.on_change, self.realtime = on_change, realtime
         self.counts = dict.fromkeys(COUNTS, 0)
+        self.zone_cap = zone_message_cap(zones.max_vertices)  # bytes
+        self.mask_cap = mask_message_cap(mask_caps.cells)
         self.last_refusal = ""  # why the last zone or mask was refused
         # $ROS_HOME/constrained_diffusion_ros/<node>.cleared: the (id, stamp) of cleared zones,
         # so their replays stay gone after a restart (exact messages: any clock, any publisher).
@@ -82,13 +89,14 @@ class ZoneIngest:
         quiet = SubscriptionEventCallbacks(incompatible_qos=lambda _event: None)
         self.subscriptions = [
             node.create_subscription(PolygonInstanceStamped, TOPICS["zones"].name,
-                                     self._on_zone, volatile),
+                                     self._on_zone, volatile, raw=True),
             node.create_subscription(PolygonInstanceStamped, TOPICS["zones"].name,
-                                     self._on_zone, latched, event_callbacks=quiet)]
+                                     self._on_zone, latched, event_callbacks=quiet, raw=True)]
         self._seen: OrderedDict[tuple, None] = OrderedDict()
         self._paced_until = 0.0  # realtime: no zone batch before then (`_on_zone`)
         node.create_subscription(OccupancyGrid, TOPICS["keepout_mask"].name,
-                                 self._on_keepout_mask, qos_profile(TOPICS["keepout_mask"]))
+                                 self._on_serialized_mask, qos_profile(TOPICS["keepout_mask"]),
+                                 raw=True)
         self.keepout_ids: list[str] = []
         self.mask_builder: MaskBuilder | None = None
         if realtime:  # masks built off the thread that answers zones
@@ -111,9 +119,10 @@ class ZoneIngest:
 
     # -- zone messages ----------------------------------------------------------------------
 
-    def _on_zone(self, msg: PolygonInstanceStamped, info: dict) -> None:
+    def _on_zone(self, data: bytes, info: dict) -> None:
         """Takes every zone message waiting, not just this one: a flood is applied as one
-        batch (the last message per id) and the union is rebuilt once, when next read.
+        batch (the last message per id) and the union is rebuilt once, when next read. Each is
+        read only if it is no longer than the caps allow.
 
         Realtime: a batch right after another first waits as long as the last one took, so a
         flood gets half the executor thread at most. Kept busy at SCHED_FIFO by a flood, the
@@ -124,12 +133,21 @@ class ZoneIngest:
         received = time.monotonic()
         if self.realtime and received < self._paced_until:
             time.sleep(self._paced_until - received)  # frees the CPU and the lock
-        messages = [(msg, info)]
+        messages = [(data, info)]
         for subscription in self.subscriptions:
             messages += self._take_waiting(subscription, ZONE_BATCH_MAX - len(messages))
         updates, refused = [], 0
-        for message, message_info in messages:
-            if self._seen_before(message, message_info):
+        for serialized, message_info in messages:
+            if self._seen_before(serialized, message_info):
+                continue
+            message, problem = read_capped(serialized, PolygonInstanceStamped, self.zone_cap)
+            if message is None:
+                refused += 1
+                self.counts["zones_oversized"] += 1
+                self.last_refusal = f"zone {problem} (max_vertices {self.zones.max_vertices})"
+                self.node.get_logger().warning(
+                    f"zone refused unread, zones in force kept: {self.last_refusal}",
+                    throttle_duration_sec=OVERSIZED_LOG_PERIOD_S)
                 continue
             zone_id = int(message.polygon.id)
             if message.header.frame_id not in ("", FRAME_ID):
@@ -151,11 +169,11 @@ class ZoneIngest:
         finished = time.monotonic()
         self._paced_until = finished + (finished - max(received, self._paced_until))
 
-    def _seen_before(self, message: PolygonInstanceStamped, info: dict) -> bool:
+    def _seen_before(self, serialized: bytes, info: dict) -> bool:
         """Whether the other zone subscription already delivered this message (a latched
-        publisher reaches both): same publication time, sequence number and id."""
+        publisher reaches both): same publication time, sequence number and length."""
         key = (info.get("source_timestamp"), info.get("publication_sequence_number"),
-               message.polygon.id)
+               len(serialized))
         if key in self._seen:
             return True
         self._seen[key] = None
@@ -178,9 +196,18 @@ class ZoneIngest:
                 taken.append(got)
         except (AttributeError, TypeError):  # another rclpy: one message per callback
             pass
+        except RuntimeError as error:  # the middleware failed a take: the executor's next one
+            logging.getLogger(__name__).warning(f"zone batch cut short: {one_line(error)}")
         return taken
 
     # -- keep-out masks ---------------------------------------------------------------------
+
+    def _on_serialized_mask(self, data: bytes) -> None:
+        msg, problem = read_capped(data, OccupancyGrid, self.mask_cap)
+        if msg is None:
+            self._refuse_mask(f"{problem} (cells at most {self.mask_caps.cells})")
+        else:
+            self._on_keepout_mask(msg)
 
     def _on_keepout_mask(self, msg: OccupancyGrid) -> None:
         """A keep-out mask: its restricted cells become zones ("keepout/<k>", exact polygons)

@@ -6,11 +6,13 @@ Part of the ROS interface layer so that the simulator node and the policy-side n
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import logging
 import os
 import re
 import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -30,6 +32,9 @@ from msg_schemas.parameters import Param, usage
 from msg_schemas.text import one_line
 
 BAD_ARGUMENTS = 2  # exit code of a command line rclpy cannot parse, as argparse's
+FAILED = 1  # exit code of a node whose executor died while it ran
+EXIT_DEADLINE_S = 1.0  # a node whose executor died is gone this soon, its clean-up finished or not
+SHUTDOWN_DEADLINE_S = 5.0  # after Ctrl-C (or SIGTERM), a node whose clean-up hangs is gone by then
 
 
 class UnusableArgument(ValueError):
@@ -174,8 +179,15 @@ def spin_node(factory: Callable[[], Node], name: str, args: list[str] | None = N
               startup_errors: tuple[type[BaseException], ...] = ()) -> int:
     """Runs a node until Ctrl-C or shutdown. `-h`/`--help` (before `--ros-args`) prints its
     parameters and topics and exits. ROS arguments rclpy cannot parse are one line on stderr
-    (exit code 2, as the commands', and for an `UnusableArgument`); a bad parameter or file at
-    start-up is logged in one line (exit code 1). Never a traceback."""
+    (exit code 2, as the commands'); a bad parameter, file or plug-in at start-up is logged in
+    one line (exit code 2 too: bad input). Never a traceback.
+
+    Should the executor die (an exception out of a callback, whatever raised it), the node's
+    `fail_safe(reason)`, if it has one, is called first (the policy node stops commanding the
+    robot and says ERROR), the error is logged in one line, and the process exits with code 1
+    within EXIT_DEADLINE_S, whether its clean-up finished or not. Ctrl-C is honoured even when
+    a callback never returns (rclpy's handler only shuts the context down, and the executor
+    would wait for the callback for ever): the process is gone SHUTDOWN_DEADLINE_S after it."""
     if answered_help(args, name, summary, parameters):
         return 0
     problem = ros_arguments_problem(args)
@@ -196,20 +208,53 @@ def spin_node(factory: Callable[[], Node], name: str, args: list[str] | None = N
     except (ValueError, ParameterException, *startup_errors) as error:
         get_logger(name).error(str(error))
         rclpy.try_shutdown()
-        return 1
+        return BAD_ARGUMENTS
     # What start-up built (torch, the model, ROS) stays for good: frozen out of the collector,
     # whose full passes would otherwise scan it with the interpreter held: in the policy node,
     # long pauses in which its control clock cannot send.
     gc.collect()
     gc.freeze()
+    code = 0
+    threading.Thread(target=exit_if_stuck_after_shutdown, name="shutdown_watch",
+                     daemon=True).start()
     try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except RCLError:  # a callback cut short by Ctrl-C publishes into a context that is gone
-        if rclpy.ok():
-            raise
+    except Exception as error:  # whatever killed the executor: fail safe
+        # (an RCLError after Ctrl-C is a callback cut short, publishing into a closed context)
+        if not (isinstance(error, RCLError) and not rclpy.ok()):
+            code = FAILED
+            exit_by_deadline(code)
+            reason = f"executor died: {type(error).__name__}: {one_line(error)}"
+            with contextlib.suppress(Exception):
+                getattr(node, "fail_safe", lambda _reason: None)(reason)
+            get_logger(name).error(f"{reason}; exiting")
     finally:
-        node.destroy_node()
+        with contextlib.suppress(Exception):
+            node.destroy_node()
         rclpy.try_shutdown()
-    return 0
+    return code
+
+
+def exit_if_stuck_after_shutdown(period_s: float = 0.1) -> None:
+    """Waits for the context to shut down (Ctrl-C, SIGTERM), then gives the process
+    SHUTDOWN_DEADLINE_S to end of its own before it is ended with FAILED."""
+    while rclpy.ok():
+        time.sleep(period_s)
+    exit_by_deadline(FAILED, SHUTDOWN_DEADLINE_S, "shutdown did not finish")
+
+
+def exit_by_deadline(code: int, seconds: float = EXIT_DEADLINE_S, why: str = "") -> None:
+    """Ends the process with `code` after `seconds`, should it still be running: a clean-up
+    that hangs (a node whose handles are held elsewhere) must not keep it alive."""
+    def end() -> None:
+        if why:
+            print(f"{why} in {seconds:g} s: exiting", file=sys.stderr)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+
+    timer = threading.Timer(seconds, end)
+    timer.daemon = True
+    timer.start()

@@ -7,6 +7,11 @@ tick (`rate_hz`) while a planning process plans the next chunk; a zone that arri
 setpoint before the next tick. Both run the evaluation's `ChunkLoop`. The node is wiring:
 observations come in through an `ObservationInput`, zones through a `ZoneIngest` (each owns its
 subscriptions, as tf2's listener does), `/diagnostics` go out through a `StatusReporter`.
+
+It fails safe: should its executor die (the thread that answers zones), `fail_safe` stops every
+setpoint, says ERROR and the process exits non-zero (`spin_node`); while the executor stalls,
+the clock withholds setpoints (`executor_watchdog_s`). A run-time change of configuration to one
+that promises less is refused unless the node was started with `allow_weaker_configuration`.
 """
 
 from __future__ import annotations
@@ -29,7 +34,7 @@ from constrained_diffusion_ros.nodes.setpoint_output import SetpointOutput
 from constrained_diffusion_ros.nodes.zone_ingest import ZoneIngest
 from constrained_diffusion_ros.planning.chunk_loop import ChunkLoop, warm_up
 from constrained_diffusion_ros.planning.clock import ControlClock
-from constrained_diffusion_ros.planning.config import load_configurations
+from constrained_diffusion_ros.planning.config import load_configurations, weakens
 from constrained_diffusion_ros.planning.liveness import StandstillCounts
 from constrained_diffusion_ros.planning.os_scheduling import request_fifo
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
@@ -72,12 +77,14 @@ class PolicyNode(Node):
         self.zones = live_zones(values, self.robot.workspace)
         self.generator = torch.Generator().manual_seed(values["noise_seed"])
         self.loop: ChunkLoop | None = None
+        self.configuration_changes = 0
         self._use_configuration(values["configuration"])
         startup.mark("planner and its worker")
         self.add_on_set_parameters_callback(self._on_parameters)
 
         self.sound = SoundSetpoints(self.robot, self.zones)
-        self.output = SetpointOutput(self, self.sound)
+        self.output = SetpointOutput(self, self.sound,
+                                     values["executor_watchdog_s"] if self.realtime else 0.0)
         self.plan_pub = self.create_publisher(PathMsg, TOPICS["plan"].name,
                                               qos_profile(TOPICS["plan"], "publisher"))
         self.status = StatusReporter(self)
@@ -106,10 +113,19 @@ class PolicyNode(Node):
                     "control clock without real-time priority (not allowed here: raise "
                     "rtprio in /etc/security/limits.conf); ticks may be late on a busy machine")
             self.create_timer(STATUS_PERIOD_S, self._on_status_timer)
+            if values["executor_watchdog_s"] > 0:  # the clock's watchdog, fed 5x in its time
+                self.create_timer(values["executor_watchdog_s"] / 5, self.output.beat)
         startup.mark("the rest")
         self.get_logger().info(
             f"{self.mode} policy from {values['model']}, configuration "
             f"{self.config.name!r}, network on {self.runtime}; start-up: {startup.text()}")
+
+    def fail_safe(self, reason: str) -> None:
+        """The executor died: no setpoint after this, ERROR said (spin_node then exits)."""
+        self.output.halt()
+        if self.realtime:
+            self.clock.shutdown(timeout=0.0)
+        self.status.publish_failure(f"stopped commanding the robot: {one_line(reason)}")
 
     def destroy_node(self) -> None:
         self.zone_ingest.shutdown()
@@ -148,11 +164,22 @@ class PolicyNode(Node):
     def _on_parameters(self, parameters) -> SetParametersResult:
         for parameter in parameters:
             if parameter.name == "configuration":
+                new = self.configurations.get(parameter.value)
+                if new is not None and weakens(self.config, new) \
+                        and not self.values["allow_weaker_configuration"]:
+                    reason = (f"configuration {new.name!r} promises less than "
+                              f"{self.config.name!r} (guarantee {new.guarantee} < "
+                              f"{self.config.guarantee}); start the node with "
+                              f"allow_weaker_configuration:=true to allow it")
+                    self.get_logger().warning(f"refused: {reason}")
+                    return SetParametersResult(successful=False, reason=reason)
                 try:
                     self._use_configuration(parameter.value)
                 except ValueError as error:
                     return SetParametersResult(successful=False, reason=str(error))
-                self.get_logger().info(f"configuration now {parameter.value!r}")
+                self.configuration_changes += 1
+                self.get_logger().warning(f"configuration now {parameter.value!r} (guarantee "
+                                          f"{self.config.guarantee})")
         return SetParametersResult(successful=True)
 
     # -- observations -> setpoints ------------------------------------------------------------
@@ -239,7 +266,8 @@ class PolicyNode(Node):
         self._publish_status(self.loop.stats.last_plan_ms)
 
     def _publish_status(self, planning_ms: float) -> None:
-        values = {"configuration": self.config.name, "mode": self.mode,
+        values = {"configuration": self.config.name, "guarantee": self.config.guarantee,
+                  "configuration_changes": self.configuration_changes, "mode": self.mode,
                   **self.output.status(), **self.observations.status(),
                   **self.standstills.status(self.robot.control_hz),
                   "plans": self.loop.stats.planner_calls, "planning_ms": f"{planning_ms:.1f}",

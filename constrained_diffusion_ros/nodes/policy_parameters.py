@@ -26,7 +26,11 @@ PARAMETERS = (
     Param("model", str(default_model_dir()), "policy directory (config.json + "
           "model.safetensors)", read_only=True),
     Param("configuration", "r_g10_p_safe", "constraint configuration, a name from the "
-          "configurations file; settable at run time"),
+          "configurations file; settable at run time to one that promises as much (guarantee "
+          "body > setpoint > none)"),
+    Param("allow_weaker_configuration", False, "allow a run-time change of configuration to "
+          "one that promises less (e.g. from body-safe to no filter): off, any participant on "
+          "the network could turn the filter off", read_only=True),
     Param("configurations_file", str(config_dir() / "configurations.yaml"),
           "constraint configurations YAML", read_only=True),
     Param("noise_seed", 0, "seed of the denoising noise (deterministic trials)", read_only=True,
@@ -50,6 +54,9 @@ PARAMETERS = (
           read_only=True),
     Param("prefix_soft", 4, "realtime: waypoints after the committed ones drawn toward the "
           "chunk in force; -1: no inpainting", read_only=True, low=-1),
+    Param("executor_watchdog_s", 0.5, "realtime: the clock sends no setpoint while the "
+          "executor, which answers zones, has not run for this long (the robot holds its last "
+          "target); 0: never withhold", read_only=True, low=0.0),
     Param("executor_priority", EXECUTOR_PRIORITY, "realtime: SCHED_FIFO priority of the "
           f"executor thread, which answers zones and observations (the clock has "
           f"{CLOCK_PRIORITY}); 0: normal scheduling", read_only=True, low=0, high=98),

@@ -17,8 +17,8 @@ from msg_schemas import TOPICS, qos_profile
 ZONE_CHECK_KEYS = ("zone_check_errors", "zone_check_failed", "zone_check_error")
 # Their rise since the last report sets the diagnostic level.
 HEALTH_COUNTERS = ("violations", "unsound_setpoints", "zones_refused", "masks_refused",
-                   "observations_refused", "late_steps", "planning_errors",
-                   "zone_check_errors")
+                   "observations_refused", "late_steps", "planning_errors", "ticks_withheld",
+                   "configuration_changes", "zone_check_errors")
 
 
 class StatusReporter:
@@ -36,6 +36,14 @@ class StatusReporter:
         status = DiagnosticStatus(level=level, name=self.node.get_fully_qualified_name(),
                                   message=message, hardware_id="pusht")
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        stamp = self.node.get_clock().now().to_msg()
+        self.publisher.publish(DiagnosticArray(header=Header(stamp=stamp), status=[status]))
+
+    def publish_failure(self, reason: str) -> None:
+        """ERROR, `reason`: the node stopped commanding the robot (its zone handling died)."""
+        status = DiagnosticStatus(level=DiagnosticStatus.ERROR,
+                                  name=self.node.get_fully_qualified_name(), message=reason,
+                                  hardware_id="pusht")
         stamp = self.node.get_clock().now().to_msg()
         self.publisher.publish(DiagnosticArray(header=Header(stamp=stamp), status=[status]))
 
@@ -76,6 +84,13 @@ class StatusReporter:
         if since["observations_refused"]:
             problems.append(f"{since['observations_refused']} observation(s) refused (not "
                             f"finite, or a pusher that cannot be the robot's)")
+        if since["ticks_withheld"]:
+            problems.append(f"{since['ticks_withheld']} tick(s) withheld: the executor that "
+                            f"answers zones had stalled")
+        if since["configuration_changes"]:
+            problems.append(f"configuration changed at run time, now "
+                            f"{values.get('configuration')!r} (guarantee "
+                            f"{values.get('guarantee')})")
         if since["late_steps"]:
             problems.append(f"planning missed its deadline ({since['late_steps']} step(s) "
                             f"with no waypoint)")

@@ -4,6 +4,14 @@
 sound (`SoundSetpoints`), stamped with its observation's stamp, kept as the one in force and
 published now or by the control clock's next tick; a setpoint replaced is never sent after it.
 It counts setpoints that went out inside a zone (`violations`).
+
+It fails safe by going quiet, as a robot driver's command timeout expects (the robot holds its
+last target, then stops on its own watchdog): `halt()` ends publishing for good (the node's zone
+handling died), and with a `watchdog_s` the clock's repeats are withheld while the executor that
+answers zones has not `beat()` for that long (a stalled executor cannot answer a new zone, so
+the setpoint in force is no longer known to respect the zones in force). Going quiet, rather
+than repeating the last setpoint, leaves no doubt on the robot's side that the node is not
+answering.
 """
 
 from __future__ import annotations
@@ -22,13 +30,25 @@ from msg_schemas.conversions import point_message
 
 
 class SetpointOutput:
-    def __init__(self, node: Node, sound: SoundSetpoints) -> None:
+    def __init__(self, node: Node, sound: SoundSetpoints, watchdog_s: float = 0.0) -> None:
         self.node, self.sound = node, sound
         self.publisher = node.create_publisher(PointStamped, TOPICS["setpoint"].name,
                                                qos_profile(TOPICS["setpoint"], "publisher"))
         self.in_force: PointStamped | None = None
         self.violations = 0
+        self.watchdog_s, self.alive_at = watchdog_s, time.monotonic()
+        self.withheld = 0  # clock ticks not sent: the executor had stalled
+        self.halted = False
         self._lock = threading.Lock()
+
+    def beat(self) -> None:
+        """The executor is alive (called from one of its timers)."""
+        self.alive_at = time.monotonic()
+
+    def halt(self) -> None:
+        """No setpoint goes out after this returns, from any thread."""
+        with self._lock:
+            self.halted = True
 
     def send(self, setpoint: np.ndarray | None, stamp, pusher: np.ndarray | None,
              publish: bool = True) -> float | None:
@@ -47,7 +67,7 @@ class SetpointOutput:
         sent = None
         with self._lock:  # a setpoint replaced is never sent after it
             self.in_force = message
-            if publish:
+            if publish and not self.halted:
                 self.publisher.publish(message)
                 sent = time.monotonic()
         self.violations += self.sound.inside_zone(setpoint)
@@ -61,13 +81,16 @@ class SetpointOutput:
 
     def status(self) -> dict[str, object]:
         return {"violations": self.violations, "unsound_setpoints": self.sound.unsound,
-                "no_free_space": self.sound.no_free_space}
+                "no_free_space": self.sound.no_free_space, "ticks_withheld": self.withheld}
 
     def repeat(self) -> None:
         """The setpoint in force again (the clock's tick; a lockstep answer that was lost),
         if there is one; nothing to wait on but the short lock around sending."""
         with self._lock:
-            if self.in_force is None:
+            if self.in_force is None or self.halted:
+                return
+            if self.watchdog_s and time.monotonic() - self.alive_at > self.watchdog_s:
+                self.withheld += 1
                 return
             try:
                 self.publisher.publish(self.in_force)

@@ -26,6 +26,14 @@ MAX_YAML_BYTES = 4 << 20
 ALIAS_NODE_BUDGET = 10_000  # nodes that aliases may add to a document, all aliases together
 
 
+GUARANTEES = ("none", "setpoint", "body")  # what a configuration promises, weakest first
+
+
+def weakens(before: ConstraintConfig, after: ConstraintConfig) -> bool:
+    """Whether `after` promises less of a setpoint than `before` (`guarantee`)."""
+    return GUARANTEES.index(after.guarantee) < GUARANTEES.index(before.guarantee)
+
+
 def _number(value: object) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool)
 
@@ -108,6 +116,15 @@ class ConstraintConfig:
         """Whether the zones change what it plans (the "None" rows ignore them)."""
         return bool(self.resample or self.push or self.project or self.path_repair
                     or self.from_scratch or self.shield)
+
+    @property
+    def guarantee(self) -> str:
+        """What it promises of every setpoint, weakest first in GUARANTEES: "body" (the
+        pusher's predicted disc kept out: shield on zones grown by its radius), "setpoint" (no
+        commanded setpoint inside a zone: the final projection), or "none" (guidance at most)."""
+        if self.shield and self.inflate:
+            return "body"
+        return "setpoint" if self.project or self.shield else "none"
 
     @property
     def sampler_key(self) -> tuple:

@@ -84,7 +84,7 @@ def test_a_device_that_is_not_here_stops_the_node_in_one_line(parameter: str, wo
                           timeout=120, cwd=tmp_path,
                           env={**os.environ, "PYTHONPATH": str(REPO),
                                "ROS_DOMAIN_ID": str(random_domain_id())})
-    assert done.returncode == 1
+    assert done.returncode == 2  # bad input, as a bad command line
     output = (done.stdout + done.stderr).strip().splitlines()
     assert len(output) == 1 and words in output[0], output
     assert "Traceback" not in done.stderr

@@ -73,7 +73,7 @@ def test_a_keepout_resolution_too_fine_for_a_mask_is_refused_in_one_line(tmp_pat
                           capture_output=True, text=True, timeout=120, cwd=tmp_path,
                           env={**os.environ, "PYTHONPATH": str(REPO),
                                "ROS_DOMAIN_ID": str(random_domain_id())})
-    assert done.returncode == 1
+    assert done.returncode == 2  # bad input, as a bad command line
     output = (done.stdout + done.stderr).strip().splitlines()
     assert len(output) == 1 and "keepout_resolution" in output[0], output
     assert "at least 0.125 px" in output[0] and "Traceback" not in done.stderr

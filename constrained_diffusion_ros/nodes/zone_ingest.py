@@ -202,17 +202,19 @@ class ZoneIngest:
 
     # -- keep-out masks ---------------------------------------------------------------------
 
-    def _on_serialized_mask(self, data: bytes) -> None:
+    def _on_serialized_mask(self, data: bytes, info: dict) -> None:
         msg, problem = read_capped(data, OccupancyGrid, self.mask_cap)
         if msg is None:
             self._refuse_mask(f"{problem} (cells at most {self.mask_caps.cells})")
         else:
-            self._on_keepout_mask(msg)
+            self._on_keepout_mask(msg, info.get("source_timestamp", 0) * 1e-9 or None)
 
-    def _on_keepout_mask(self, msg: OccupancyGrid) -> None:
+    def _on_keepout_mask(self, msg: OccupancyGrid, published: float | None = None) -> None:
         """A keep-out mask: its restricted cells become zones ("keepout/<k>", exact polygons)
         in place of the previous mask's; they do not expire. Under the caps, which bound the
-        build."""
+        build. A mask's stamp only tells a replay from a new mask (a cleared one stays gone
+        when a latched publisher replays it after a restart): an unstamped one goes by when
+        it was `published` (the middleware's source timestamp, which a replay keeps)."""
         if msg.header.frame_id not in ("", FRAME_ID):
             self._refuse_mask(f"frame {one_line(repr(msg.header.frame_id), 80)} is not "
                               f"{FRAME_ID!r}")
@@ -222,7 +224,7 @@ class ZoneIngest:
                 "origin": (info.origin.position.x, info.origin.position.y),
                 "threshold": self.node.get_parameter("keepout_threshold").value,
                 "width": info.width, "height": info.height}
-        stamp = stamp_seconds(msg.header.stamp) or None
+        stamp = stamp_seconds(msg.header.stamp) or published
         if self.mask_builder is not None:
             self.mask_builder.submit(stamp, **grid)
         else:

@@ -5,6 +5,7 @@ force nor revives one whose lifetime has passed."""
 from __future__ import annotations
 
 import pytest
+from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PolygonInstanceStamped
 from nav_msgs.msg import OccupancyGrid
 from rclpy.duration import Duration
@@ -164,10 +165,12 @@ def test_a_restarted_policy_does_not_revive_a_cleared_zone(
     assert all(5 not in (shown_zone_ids([m]) or []) for m in markers[before:])
 
 
+@pytest.mark.parametrize("stamped", [True, False], ids=["stamped", "unstamped"])
 def test_a_restarted_policy_does_not_revive_a_cleared_keepout_mask(
-        ros, processes, tiny_model, configurations_file) -> None:
+        ros, processes, tiny_model, configurations_file, stamped: bool) -> None:
     """As for zones: a latched keep-out mask cleared by the service stays gone when the policy
-    restarts and the latched history hands it the same mask again."""
+    restarts and the latched history hands it the same mask again; one sent without a stamp
+    came back (it is now known by when the middleware says it was published)."""
     markers = markers_of(ros)
     mask_topic = TOPICS["keepout_mask"]
     masks = ros.node.create_publisher(OccupancyGrid, mask_topic.resolved("/pusht"),
@@ -184,7 +187,8 @@ def test_a_restarted_policy_does_not_revive_a_cleared_keepout_mask(
     mask = rasterize([SQUARE], 4.0, (0.0, 0.0), 128, 128)
     start()
     assert ros.spin_until(lambda: masks.get_subscription_count() == 1), processes.logs()
-    masks.publish(occupancy_grid(mask, 4.0, (0.0, 0.0), ros.node.get_clock().now().to_msg()))
+    stamp = ros.node.get_clock().now().to_msg() if stamped else Time()
+    masks.publish(occupancy_grid(mask, 4.0, (0.0, 0.0), stamp))
     assert ros.spin_until(lambda: shown() == 1), processes.logs()
     assert clear.wait_for_service(timeout_sec=DISCOVERY_S)
     future = clear.call_async(Trigger.Request())
@@ -201,3 +205,4 @@ def test_a_restarted_policy_does_not_revive_a_cleared_keepout_mask(
     assert ros.spin_until(lambda: len(markers) > before and shown_zone_ids(markers) == [6]), \
         processes.logs()
     assert all(shown_zone_ids([m]) == [6] for m in markers[before:]), processes.logs()
+    ros.node.destroy_publisher(masks)  # its history would reach the next test's node

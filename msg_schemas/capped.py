@@ -2,9 +2,10 @@
 
 rclpy turns a message into Python objects before any callback sees it: a `Point32` object per
 vertex, about 3 s per million vertices, holding the interpreter lock all along. A node that
-takes messages from any participant on the network (zones, keep-out masks) subscribes to their
-serialized bytes instead (`raw=True`), refuses those longer than the largest message it would
-accept, and deserializes only the rest. Refusing costs the length of a bytes object.
+takes messages from any participant on the network (zones, keep-out masks, observations)
+subscribes to their serialized bytes instead (`raw=True`), refuses those longer than the
+largest message it would accept, and deserializes only the rest. Refusing costs the length of
+a bytes object.
 """
 
 from __future__ import annotations
@@ -18,20 +19,23 @@ from msg_schemas.contract import FRAME_ID
 FRAME_ID_SLACK = 64  # bytes of frame id a message may carry beyond FRAME_ID before it is too big
 
 
-def zone_message_cap(max_vertices: int) -> int:
-    """Bytes of the largest zone message worth reading: `max_vertices` vertices and a frame id
-    longer than FRAME_ID (one of another frame is refused in words, once read)."""
-    message = PolygonInstanceStamped()
+def largest(message) -> int:
+    """Bytes of `message` serialized with a frame id longer than FRAME_ID: the largest message
+    of its shape worth reading (one of another frame is refused in words, once read)."""
     message.header.frame_id = "f" * (len(FRAME_ID) + FRAME_ID_SLACK)
-    message.polygon.polygon.points = [Point32()] * max_vertices
     return len(serialize_message(message))
+
+
+def zone_message_cap(max_vertices: int) -> int:
+    """Bytes of the largest zone message worth reading: `max_vertices` vertices."""
+    message = PolygonInstanceStamped()
+    message.polygon.polygon.points = [Point32()] * max_vertices
+    return largest(message)
 
 
 def mask_message_cap(max_cells: int) -> int:
     """Bytes of the largest keep-out mask worth reading: `max_cells` cells (one byte each)."""
-    message = OccupancyGrid()
-    message.header.frame_id = "f" * (len(FRAME_ID) + FRAME_ID_SLACK)
-    return len(serialize_message(message)) + max_cells
+    return largest(OccupancyGrid()) + max_cells
 
 
 def read_capped(data: bytes, msg_type: type, max_bytes: int) -> tuple[object | None, str]:

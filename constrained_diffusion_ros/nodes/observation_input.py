@@ -4,7 +4,9 @@
 it owns the two observation subscriptions and the halves waiting for their other half, and hands
 the node each whole observation once, checked: one that is not finite, or whose pusher cannot be
 the robot's (out of the workspace, or a jump no PD pusher can make), is refused with a warning
-and counted, and nothing is planned from it.
+and counted, and nothing is planned from it. Both halves are taken serialized and refused
+unread if longer than a half can be (`msg_schemas.capped`): keypoints with a million points
+would hold the executor for seconds while rclpy read them.
 """
 
 from __future__ import annotations
@@ -12,14 +14,17 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-from geometry_msgs.msg import PointStamped, PolygonStamped
+from geometry_msgs.msg import Point32, PointStamped, Polygon, PolygonStamped
 from rclpy.node import Node
 
 from constrained_diffusion_ros.planning.robot import RobotModel
 from msg_schemas import TOPICS, qos_profile
+from msg_schemas.capped import largest, read_capped
 from msg_schemas.conversions import point_of, polygon_of, stamp_seconds
+from sim_bridge.scene import KEYPOINTS_LOCAL
 from sim_bridge.scene import observation as pusht_observation
 
+KEYPOINTS = len(KEYPOINTS_LOCAL)  # the T block's keypoints in an observation
 PENDING_HALVES = 64  # observation halves (keypoints or pusher) kept waiting for their other half
 
 
@@ -47,16 +52,33 @@ class ObservationInput:
         self.pusher: np.ndarray | None = None
         self.pusher_stamp: float | None = None
         self.moved: float | None = None
+        self.caps = {PolygonStamped: largest(PolygonStamped(polygon=Polygon(
+            points=[Point32()] * KEYPOINTS))), PointStamped: largest(PointStamped())}
         self.subscriptions = [
             node.create_subscription(PolygonStamped, TOPICS["keypoints"].name,
-                                     self._on_keypoints, qos_profile(TOPICS["keypoints"])),
-            node.create_subscription(PointStamped, TOPICS["pusher"].name, self._on_pusher,
-                                     qos_profile(TOPICS["pusher"]))]
+                                     self._capped(PolygonStamped, self._on_keypoints),
+                                     qos_profile(TOPICS["keypoints"]), raw=True),
+            node.create_subscription(PointStamped, TOPICS["pusher"].name,
+                                     self._capped(PointStamped, self._on_pusher),
+                                     qos_profile(TOPICS["pusher"]), raw=True)]
+
+    def _capped(self, msg_type: type, callback: Callable) -> Callable[[bytes], None]:
+        """`callback` for the messages of `msg_type` no longer than a real one can be."""
+        def on_serialized(data: bytes) -> None:
+            message, problem = read_capped(data, msg_type, self.caps[msg_type])
+            if message is None:
+                self.refused += 1
+                self.node.get_logger().warning(
+                    f"observation refused unread, last safe setpoint held: "
+                    f"{msg_type.__name__} {problem}", throttle_duration_sec=1.0)
+                return
+            callback(message)
+        return on_serialized
 
     def _on_keypoints(self, msg: PolygonStamped) -> None:
-        if len(msg.polygon.points) != 9:
+        if len(msg.polygon.points) != KEYPOINTS:
             self.node.get_logger().warning(
-                f"keypoints need 9 points, got {len(msg.polygon.points)}")
+                f"keypoints need {KEYPOINTS} points, got {len(msg.polygon.points)}")
             return
         self._half(self.keypoints, msg.header.stamp, polygon_of(msg.polygon))
 

@@ -238,3 +238,28 @@ def test_a_configuration_that_promises_less_is_refused_at_run_time(
         assert changed and changed[-1].level == DiagnosticStatus.WARN
     ok, reason = set_configuration(ros, "fast_safe")  # as strong or stronger: always allowed
     assert ok, reason
+
+
+def keypoints_bytes(step: int, points: int) -> bytes:
+    """Serialized keypoints (PolygonStamped, the points last) of `points` points."""
+    message = PolygonStamped()
+    message.header.stamp, message.header.frame_id = step_stamp(step), FRAME_ID
+    message.polygon.points = [Point32()]
+    head = serialize_message(message)[:-(4 + 12)]
+    return head + struct.pack("<I", points) + bytes(12 * points)
+
+
+def test_keypoints_too_big_to_read_are_refused_unread_and_a_zone_after_is_obeyed(
+        ros, processes, tiny_model, configurations_file) -> None:
+    """Observations come from any participant too: a million keypoints would have held the
+    executor for seconds while rclpy read them."""
+    link = Link(ros, processes, tiny_model, configurations_file)
+    link.running()
+    link.keypoints.publish(keypoints_bytes(link.step, 1_000_000))
+    before = len(link.arrivals)
+    sent, grown = link.zone_on_setpoint(4)
+    assert ros.spin_until(lambda: any(t > sent and not grown.contains(shapely.Point(*p))
+                                      for t, p in link.arrivals[before:]), 2.0)
+    status = link.latest_status(lambda v: int(v["observations_refused"]) >= 1)
+    assert float(status["zone_to_setpoint_ms"]) < 1000 * PERIOD_S
+    assert "refused unread" in link.log.read_text()

@@ -51,7 +51,7 @@ class StandInNode:
         self.published: list[PointStamped] = []
         self.context = SimpleNamespace(ok=lambda: True)
 
-    def create_subscription(self, *args: object) -> None:
+    def create_subscription(self, *args: object, **kwargs: object) -> None:
         return None
 
     def create_publisher(self, *args: object) -> SimpleNamespace:

@@ -55,7 +55,8 @@ def rollout(planner: ChunkPlanner, seeds: Sequence[int], n_steps: int = 200,
             handover: str = "sync") -> RolloutLog:
     """Runs every seeded scene for `n_steps` control steps, all episodes in one batch, through
     the chunk loop the policy node runs; plans are ready `delay` steps after they are asked
-    for, and `handover` says what executes meanwhile (see `ChunkLoop`)."""
+    for, and `handover` says what executes meanwhile (see `ChunkLoop`). A plug-in zone check
+    that fails in use raises ValueError: the node stops its pusher, a rollout stops."""
     sims = PushTBatch(len(seeds))
     states = [sims.reset(list(seeds))]
     loop = ChunkLoop.simulated(planner, zones, generator, delay, handover)
@@ -64,6 +65,8 @@ def rollout(planner: ChunkPlanner, seeds: Sequence[int], n_steps: int = 200,
               leave=False) as bar:
         for step in range(n_steps):
             action = loop.observe(step, sims.observations())
+            if loop.zone_check_error is not None:  # offline, a stopped pusher is no result
+                raise ValueError(f"{loop.zone_check_error} (step {step}): no figures from it")
             states.append(sims.step(action))
             commanded.append(action)
             wanted.append(loop.wanted)

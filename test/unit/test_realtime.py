@@ -720,6 +720,19 @@ def test_a_zone_check_that_turns_nan_stops_the_pushers_and_is_said_once(
     assert loop.status()["zone_check_error"].endswith("contains failed")
 
 
+def test_a_rollout_whose_zone_check_fails_in_use_stops_in_one_line(
+        tiny_policy: DiffusionPolicy, turns_nan: None) -> None:
+    """The loop stops the pushers where a plug-in check fails; offline that would count as an
+    episode of a pusher that stood still. The rollout (so `evaluate`) stops instead, naming it."""
+    from constrained_diffusion_ros.evaluation.rollout import rollout
+
+    area = load_area(TURNS_NAN_SPEC, {"after": 30})
+    zones = LiveZones(fixed=area, workspace=PUSHT_ROBOT.workspace)
+    with pytest.raises(ValueError, match=r"zone check 'turns_nan_zones:TurnsNaN'.*no figures"):
+        rollout(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT), [100000], n_steps=40,
+                zones=zones, generator=torch.Generator().manual_seed(0))
+
+
 def test_a_zone_check_fault_in_the_planning_process_comes_back_as_one(
         tiny_policy: DiffusionPolicy, turns_nan: None) -> None:
     """The child plans with the zones it was sent; a check failing there comes back as the

@@ -1,7 +1,7 @@
 """Messages whose size is checked before they are read.
 
 rclpy turns a message into Python objects before any callback sees it: a `Point32` object per
-vertex, about 3 s per million vertices, holding the interpreter lock all along. A node that
+vertex, holding the interpreter lock all along (seconds for a million vertices). A node that
 takes messages from any participant on the network (zones, keep-out masks, observations)
 subscribes to their serialized bytes instead (`raw=True`), refuses those longer than the
 largest message it would accept, and deserializes only the rest. Refusing costs the length of

@@ -201,11 +201,7 @@ def spin_node(factory: Callable[[], Node], name: str, args: list[str] | None = N
         return BAD_ARGUMENTS
     try:
         node = factory()
-    except UnusableArgument as error:
-        get_logger(name).error(str(error))
-        rclpy.try_shutdown()
-        return BAD_ARGUMENTS
-    except (ValueError, ParameterException, *startup_errors) as error:
+    except (ValueError, ParameterException, *startup_errors) as error:  # UnusableArgument too
         get_logger(name).error(str(error))
         rclpy.try_shutdown()
         return BAD_ARGUMENTS
@@ -215,8 +211,9 @@ def spin_node(factory: Callable[[], Node], name: str, args: list[str] | None = N
     gc.collect()
     gc.freeze()
     code = 0
-    threading.Thread(target=exit_if_stuck_after_shutdown, name="shutdown_watch",
-                     daemon=True).start()
+    outcome: dict[str, int] = {}  # the exit code, once the clean-up has finished
+    threading.Thread(target=exit_if_stuck_after_shutdown, args=(outcome,),
+                     name="shutdown_watch", daemon=True).start()
     try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
@@ -234,21 +231,27 @@ def spin_node(factory: Callable[[], Node], name: str, args: list[str] | None = N
         with contextlib.suppress(Exception):
             node.destroy_node()
         rclpy.try_shutdown()
+        outcome["code"] = code
     return code
 
 
-def exit_if_stuck_after_shutdown(period_s: float = 0.1) -> None:
+def exit_if_stuck_after_shutdown(outcome: dict[str, int], period_s: float = 0.1) -> None:
     """Waits for the context to shut down (Ctrl-C, SIGTERM), then gives the process
-    SHUTDOWN_DEADLINE_S to end of its own before it is ended with FAILED."""
+    SHUTDOWN_DEADLINE_S to end of its own: after that it ends with the code its clean-up
+    settled on, or FAILED if that never finished."""
     while rclpy.ok():
         time.sleep(period_s)
-    exit_by_deadline(FAILED, SHUTDOWN_DEADLINE_S, "shutdown did not finish")
+    exit_by_deadline(FAILED, SHUTDOWN_DEADLINE_S, "shutdown did not finish", outcome)
 
 
-def exit_by_deadline(code: int, seconds: float = EXIT_DEADLINE_S, why: str = "") -> None:
-    """Ends the process with `code` after `seconds`, should it still be running: a clean-up
-    that hangs (a node whose handles are held elsewhere) must not keep it alive."""
+def exit_by_deadline(code: int, seconds: float = EXIT_DEADLINE_S, why: str = "",
+                     outcome: dict[str, int] | None = None) -> None:
+    """Ends the process with `code` (or `outcome["code"]`, once set) after `seconds`, should
+    it still be running: a clean-up that hangs (a node whose handles are held elsewhere) must
+    not keep it alive."""
     def end() -> None:
+        if outcome and "code" in outcome:
+            os._exit(outcome["code"])  # the clean-up finished: only the interpreter lingers
         if why:
             print(f"{why} in {seconds:g} s: exiting", file=sys.stderr)
         sys.stdout.flush()

@@ -25,10 +25,16 @@ import numpy as np
 import torch
 from nav_msgs.msg import Path as PathMsg
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from constrained_diffusion_ros.nodes.observation_input import ObservationInput
-from constrained_diffusion_ros.nodes.policy_parameters import PARAMETERS, live_zones, robot_model
+from constrained_diffusion_ros.nodes.policy_parameters import (
+    PARAMETERS,
+    live_zones,
+    robot_model,
+    weaker_setting,
+)
 from constrained_diffusion_ros.nodes.policy_status import ReactionTimes, StatusReporter
 from constrained_diffusion_ros.nodes.setpoint_output import SetpointOutput
 from constrained_diffusion_ros.nodes.zone_ingest import ZoneIngest
@@ -78,6 +84,7 @@ class PolicyNode(Node):
         self.generator = torch.Generator().manual_seed(values["noise_seed"])
         self.loop: ChunkLoop | None = None
         self.configuration_changes = 0
+        self.changes_refused = 0  # run-time parameter changes refused for weakening the filter
         self._use_configuration(values["configuration"])
         startup.mark("planner and its worker")
         self.add_on_set_parameters_callback(self._on_parameters)
@@ -113,8 +120,9 @@ class PolicyNode(Node):
                     "control clock without real-time priority (not allowed here: raise "
                     "rtprio in /etc/security/limits.conf); ticks may be late on a busy machine")
             self.create_timer(STATUS_PERIOD_S, self._on_status_timer)
-            if values["executor_watchdog_s"] > 0:  # the clock's watchdog, fed 5x in its time
-                self.create_timer(values["executor_watchdog_s"] / 5, self.output.beat)
+            if values["executor_watchdog_s"] > 0:  # the clock's watchdog, fed 5x in its time,
+                self.create_timer(values["executor_watchdog_s"] / 5, self.output.beat,
+                                  clock=Clock(clock_type=ClockType.STEADY_TIME))  # sim time or not
         startup.mark("the rest")
         self.get_logger().info(
             f"{self.mode} policy from {values['model']}, configuration "
@@ -128,9 +136,10 @@ class PolicyNode(Node):
         self.status.publish_failure(f"stopped commanding the robot: {one_line(reason)}")
 
     def destroy_node(self) -> None:
-        self.zone_ingest.shutdown()
+        self.output.halt()  # no setpoint while the rest shuts down
         if self.realtime:
             self.clock.shutdown()
+        self.zone_ingest.shutdown()
         self.loop.shutdown()
         super().destroy_node()
 
@@ -161,18 +170,28 @@ class PolicyNode(Node):
             every_tick=values["replan_every_tick"],
             replan_on_zone_change=values["replan_on_zone_change"], on_install=self._after_plan)
 
+    def _weaker(self, parameter) -> str | None:
+        """Why setting `parameter` would weaken the filter, or None."""
+        if parameter.name == "configuration":
+            new = self.configurations.get(parameter.value)
+            if new is not None and weakens(self.config, new):
+                return (f"configuration {new.name!r} promises less than {self.config.name!r} "
+                        f"(guarantee {new.guarantee} < {self.config.guarantee})")
+            return None
+        return weaker_setting(parameter.name, self.get_parameter(parameter.name).value,
+                              parameter.value)
+
     def _on_parameters(self, parameters) -> SetParametersResult:
+        if not self.values["allow_weaker_configuration"]:
+            for parameter in parameters:
+                reason = self._weaker(parameter)
+                if reason is not None:
+                    reason += "; start the node with allow_weaker_configuration:=true to allow it"
+                    self.get_logger().warning(f"refused: {reason}")
+                    self.changes_refused += 1
+                    return SetParametersResult(successful=False, reason=reason)
         for parameter in parameters:
             if parameter.name == "configuration":
-                new = self.configurations.get(parameter.value)
-                if new is not None and weakens(self.config, new) \
-                        and not self.values["allow_weaker_configuration"]:
-                    reason = (f"configuration {new.name!r} promises less than "
-                              f"{self.config.name!r} (guarantee {new.guarantee} < "
-                              f"{self.config.guarantee}); start the node with "
-                              f"allow_weaker_configuration:=true to allow it")
-                    self.get_logger().warning(f"refused: {reason}")
-                    return SetParametersResult(successful=False, reason=reason)
                 try:
                     self._use_configuration(parameter.value)
                 except ValueError as error:
@@ -267,7 +286,8 @@ class PolicyNode(Node):
 
     def _publish_status(self, planning_ms: float) -> None:
         values = {"configuration": self.config.name, "guarantee": self.config.guarantee,
-                  "configuration_changes": self.configuration_changes, "mode": self.mode,
+                  "configuration_changes": self.configuration_changes,
+                  "changes_refused": self.changes_refused, "mode": self.mode,
                   **self.output.status(), **self.observations.status(),
                   **self.standstills.status(self.robot.control_hz),
                   "plans": self.loop.stats.planner_calls, "planning_ms": f"{planning_ms:.1f}",

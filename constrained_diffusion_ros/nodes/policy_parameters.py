@@ -28,9 +28,10 @@ PARAMETERS = (
     Param("configuration", "r_g10_p_safe", "constraint configuration, a name from the "
           "configurations file; settable at run time to one that promises as much (guarantee "
           "body > setpoint > none)"),
-    Param("allow_weaker_configuration", False, "allow a run-time change of configuration to "
-          "one that promises less (e.g. from body-safe to no filter): off, any participant on "
-          "the network could turn the filter off", read_only=True),
+    Param("allow_weaker_configuration", False, "allow run-time changes that weaken the filter "
+          "(a configuration that promises less, a shorter zone_lifetime, a higher "
+          "keepout_threshold): off, any participant on the network could turn it down",
+          read_only=True),
     Param("configurations_file", str(config_dir() / "configurations.yaml"),
           "constraint configurations YAML", read_only=True),
     Param("noise_seed", 0, "seed of the denoising noise (deterministic trials)", read_only=True,
@@ -105,6 +106,17 @@ PARAMETERS = (
           "predicts the pusher with", read_only=True, low=0.1),
 )
 
+
+
+def weaker_setting(name: str, old: object, new: object) -> str | None:
+    """Why changing run-time parameter `name` from `old` to `new` lets more through, or None:
+    zones that expire sooner (a lifetime of 1e-6 s drops every zone as it comes), keep-out
+    cells that stop counting (a higher threshold)."""
+    if name == "zone_lifetime" and new and (not old or new < old):
+        return f"zone_lifetime {new} s lets zones expire sooner than {old or 'never'}"
+    if name == "keepout_threshold" and new > old:
+        return f"keepout_threshold {new} restricts fewer keep-out cells than {old}"
+    return None
 
 
 def robot_model(values: dict) -> RobotModel:

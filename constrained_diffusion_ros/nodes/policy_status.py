@@ -8,6 +8,7 @@ from __future__ import annotations
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.duration import Duration
 from rclpy.node import Node
 from std_msgs.msg import Header
 
@@ -18,7 +19,7 @@ ZONE_CHECK_KEYS = ("zone_check_errors", "zone_check_failed", "zone_check_error")
 # Their rise since the last report sets the diagnostic level.
 HEALTH_COUNTERS = ("violations", "unsound_setpoints", "zones_refused", "masks_refused",
                    "observations_refused", "late_steps", "planning_errors", "ticks_withheld",
-                   "configuration_changes", "zone_check_errors")
+                   "configuration_changes", "changes_refused", "zone_check_errors")
 
 
 class StatusReporter:
@@ -32,18 +33,18 @@ class StatusReporter:
 
     def publish(self, values: dict[str, object]) -> None:
         values = {**self._zone_check(), **values}
-        level, message = self.health(values)
+        self._send(*self.health(values), values)
+
+    def publish_failure(self, reason: str, wait_s: float = 0.5) -> None:
+        """ERROR, `reason`: the node stopped commanding the robot (its zone handling died).
+        Waits up to `wait_s` for subscribers to have it: the process ends right after."""
+        self._send(DiagnosticStatus.ERROR, reason, {})
+        self.publisher.wait_for_all_acked(Duration(seconds=wait_s))
+
+    def _send(self, level: bytes, message: str, values: dict[str, object]) -> None:
         status = DiagnosticStatus(level=level, name=self.node.get_fully_qualified_name(),
                                   message=message, hardware_id="pusht")
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
-        stamp = self.node.get_clock().now().to_msg()
-        self.publisher.publish(DiagnosticArray(header=Header(stamp=stamp), status=[status]))
-
-    def publish_failure(self, reason: str) -> None:
-        """ERROR, `reason`: the node stopped commanding the robot (its zone handling died)."""
-        status = DiagnosticStatus(level=DiagnosticStatus.ERROR,
-                                  name=self.node.get_fully_qualified_name(), message=reason,
-                                  hardware_id="pusht")
         stamp = self.node.get_clock().now().to_msg()
         self.publisher.publish(DiagnosticArray(header=Header(stamp=stamp), status=[status]))
 
@@ -87,6 +88,9 @@ class StatusReporter:
         if since["ticks_withheld"]:
             problems.append(f"{since['ticks_withheld']} tick(s) withheld: the executor that "
                             f"answers zones had stalled")
+        if since["changes_refused"]:
+            problems.append(f"{since['changes_refused']} run-time parameter change(s) refused "
+                            f"(they would weaken the filter)")
         if since["configuration_changes"]:
             problems.append(f"configuration changed at run time, now "
                             f"{values.get('configuration')!r} (guarantee "

@@ -17,11 +17,11 @@ counted without being read, so no participant can hold the node with a message t
 from __future__ import annotations
 
 import json
-import logging
 import os
 import time
 from collections import OrderedDict
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +47,16 @@ EXPIRY_PERIOD_S = 0.2  # zones past their lifetime are dropped this often
 COUNTS = ("zone_messages", "zones_applied", "zones_refused", "zones_oversized", "zones_stale",
           "zone_batches", "masks_applied", "masks_refused")
 OVERSIZED_LOG_PERIOD_S = 1.0  # a flood of oversized messages is logged this often at most
+
+
+@dataclass(frozen=True)
+class Unread:
+    """A message too long to read, kept as its length while a batch is taken."""
+
+    size: int
+
+    def __len__(self) -> int:
+        return self.size
 
 
 class ZoneIngest:
@@ -181,10 +191,10 @@ class ZoneIngest:
             self._seen.popitem(last=False)
         return False
 
-    @staticmethod
-    def _take_waiting(subscription, limit: int) -> list[tuple]:
-        """The (message, info) pairs already queued on `subscription` (rclpy's own take, as
-        its executor does), so a callback can handle a burst at once."""
+    def _take_waiting(self, subscription, limit: int) -> list[tuple]:
+        """The (serialized message, info) pairs already queued on `subscription` (rclpy's own
+        take, as its executor does), so a callback can handle a burst at once; one longer than
+        the cap is kept as its length only (`Unread`), so a burst of them is not held whole."""
         taken = []
         try:
             while len(taken) < limit:
@@ -193,11 +203,13 @@ class ZoneIngest:
                                                            subscription.raw)
                 if got is None:
                     break
-                taken.append(got)
+                data, info = got
+                taken.append((data if len(data) <= self.zone_cap else Unread(len(data)), info))
         except (AttributeError, TypeError):  # another rclpy: one message per callback
             pass
         except RuntimeError as error:  # the middleware failed a take: the executor's next one
-            logging.getLogger(__name__).warning(f"zone batch cut short: {one_line(error)}")
+            self.last_refusal = f"zone batch cut short: {one_line(error)}"
+            self.node.get_logger().warning(self.last_refusal, throttle_duration_sec=1.0)
         return taken
 
     # -- keep-out masks ---------------------------------------------------------------------

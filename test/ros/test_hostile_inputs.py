@@ -1,35 +1,28 @@
 """Hostile and unlucky inputs to a running policy node, over real DDS: keep-out masks that cost
 more than the node can hold, and pusher reports no robot can make.
 
-The realtime node runs on a long tick (`TICK_S`), so "within one tick" is measured against a
-period much longer than anything the node legitimately needs, and a stalled executor (the
-failure these tests guard against: a fine mask froze it for minutes) shows as a missed tick.
-The test feeds observations itself with the pusher at `PUSHER`; the tiny policy's setpoints
-are noise-like, so a zone dropped on the latest one is a real test of the reaction.
+The realtime node runs on a long tick (`TICK_S`, `realtime_link.py`), so a stalled executor
+(the failure these tests guard against: a fine mask froze it for minutes) shows as a missed
+tick. The test feeds observations itself with the pusher at `PUSHER`.
 """
 
 from __future__ import annotations
 
 import os
 import signal
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import shapely
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from geometry_msgs.msg import Point32, PointStamped, PolygonInstanceStamped, PolygonStamped
-from nav_msgs.msg import OccupancyGrid
-from nav_msgs.msg import Path as PathMsg
+from diagnostic_msgs.msg import DiagnosticStatus
+from geometry_msgs.msg import Point32, PolygonInstanceStamped
+from realtime_link import PUSHER, TICK_S, RealtimeLink, status_values
 from ros_helpers import step_stamp
 
-from msg_schemas import FRAME_ID, TOPICS
+from msg_schemas import FRAME_ID
 from msg_schemas.conversions import occupancy_grid
 from sim_bridge import AGENT_RADIUS
-
-TICK_S = 1.0
-PUSHER = (40.0, 470.0)
 
 
 def checkerboard(cells: int, rows: slice | None = None) -> np.ndarray:
@@ -39,70 +32,6 @@ def checkerboard(cells: int, rows: slice | None = None) -> np.ndarray:
     pattern = (np.add.outer(np.arange(cells), np.arange(cells)) % 2 == 0) * 100
     board[rows or slice(None)] = pattern[rows or slice(None)]
     return board
-
-
-def status_values(report: DiagnosticArray) -> dict[str, str]:
-    return {kv.key: kv.value for kv in report.status[0].values}
-
-
-class RealtimeLink:
-    """A realtime policy node fed by the test: observations, zones and masks go in, setpoints
-    (with their arrival time) and statuses come out."""
-
-    def __init__(self, ros, processes, tiny_model, configurations_file) -> None:
-        self.ros = ros
-        self.arrivals: list[tuple[float, np.ndarray]] = []
-        ros.inbox("setpoint", PointStamped, lambda m: self.arrivals.append(
-            (time.monotonic(), np.array([m.point.x, m.point.y]))))
-        self.statuses = ros.inbox("diagnostics", DiagnosticArray)
-        self.plans = ros.inbox("plan", PathMsg)
-        self.zones = ros.publisher("zones", PolygonInstanceStamped)
-        self.masks = ros.publisher("keepout_mask", OccupancyGrid)
-        self.keypoints = ros.publisher("keypoints", PolygonStamped)
-        self.pusher = ros.publisher("pusher", PointStamped)
-        processes.start("policy_node", model=tiny_model, configurations_file=configurations_file,
-                        configuration="fast_safe", mode="realtime", rate_hz=1 / TICK_S)
-        self.processes = processes
-        self.step = 0
-        assert ros.spin_until(lambda: all(p.get_subscription_count() >= 1 for p in (
-            self.zones, self.masks, self.keypoints, self.pusher))
-            and ros.node.count_publishers(TOPICS["setpoint"].name) >= 1), processes.logs()
-
-    def observe(self, pusher: tuple[float, float] = PUSHER) -> None:
-        keypoints = PolygonStamped()
-        keypoints.header.stamp, keypoints.header.frame_id = step_stamp(self.step), FRAME_ID
-        keypoints.polygon.points = [Point32(x=256.0, y=256.0 + i, z=0.0) for i in range(9)]
-        message = PointStamped()
-        message.header = keypoints.header
-        message.point.x, message.point.y = pusher
-        self.keypoints.publish(keypoints)
-        self.pusher.publish(message)
-        self.step += 1
-
-    def planning(self) -> None:
-        """Observations until a plan is in and a tick has sent one of its waypoints."""
-        while not self.plans:
-            self.observe()
-            self.ros.spin_until(lambda: bool(self.plans), 0.5)
-        ticks = len(self.arrivals)
-        assert self.ros.spin_until(lambda: len(self.arrivals) > ticks, 2 * TICK_S + 5)
-
-    def drop_zone_on_setpoint(self, zone_id: int) -> tuple[float, shapely.Geometry]:
-        """A 30 px square zone on the latest setpoint; (when it was sent, the zone grown by
-        the pusher radius less half a px)."""
-        x, y = self.arrivals[-1][1]
-        zone = ((x - 15, y - 15), (x + 15, y - 15), (x + 15, y + 15), (x - 15, y + 15))
-        msg = PolygonInstanceStamped()
-        msg.header.frame_id, msg.polygon.id = FRAME_ID, zone_id
-        msg.polygon.polygon.points = [Point32(x=float(a), y=float(b), z=0.0) for a, b in zone]
-        sent = time.monotonic()
-        self.zones.publish(msg)
-        return sent, shapely.Polygon(zone).buffer(AGENT_RADIUS - 0.5)
-
-    def latest_status(self, predicate, timeout: float = 10.0) -> dict[str, str]:
-        assert self.ros.spin_until(lambda: self.statuses and predicate(
-            status_values(self.statuses[-1])), timeout), self.processes.logs()
-        return status_values(self.statuses[-1])
 
 
 @pytest.fixture

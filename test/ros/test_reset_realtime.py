@@ -21,9 +21,9 @@ from geometry_msgs.msg import Point32, PointStamped, PolygonStamped
 from nav_msgs.msg import OccupancyGrid
 from nav_msgs.msg import Path as PathMsg
 from rclpy.logging import get_logger
+from realtime_link import TICK_S, RealtimeLink, status_values
 from ros_helpers import stamp_ns, step_ns, step_stamp
 from std_srvs.srv import Trigger
-from test_hostile_inputs import TICK_S, RealtimeLink, status_values
 
 from constrained_diffusion_ros.nodes.observation_input import ObservationInput
 from constrained_diffusion_ros.nodes.policy_node import PolicyNode

@@ -11,6 +11,7 @@ records the file holds and rewrites the bag with its index and metadata.
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import os
 import shutil
@@ -55,9 +56,17 @@ TRIAL_TOPICS = {"pusher": "pusher", "block": "block_pose",
 # writing, and the bag is refused past this many times their size (but 64 MiB always pass).
 MAX_UNPACK_RATIO = 64
 MIN_UNPACK_LIMIT = 64 << 20
+# A bag compressed per message (compression_mode: message) has each message unpacked by rosbags
+# with no limit at all (a few kB of zstd -> GiB in memory), and no recorder of this package
+# writes one: such bags are refused, by every reader of bags here and by recover_bag.
+MESSAGE_MODE_REFUSED = ("compressed per message (compression_mode: message), which rosbags "
+                        "unpacks without a limit; refused (bags uncompressed or compressed per "
+                        "file are read)")
 # What rosbags' and mcap's parsers raise on bytes that are not a whole MCAP file, besides their
 # own errors (a file of only the magic gives TypeError from ord(b""), one cut in a fixed-size
-# field struct.error, one shorter than a footer OSError from its seek).
+# field struct.error, one shorter than a footer OSError EINVAL from its seek). Any other OSError
+# (permission, I/O error) is the system failing to read the bag, not a fault of the bag:
+# `_read_error` tells them apart.
 STORAGE_FAULTS = (ReaderError, McapError, EOFError, struct.error, TypeError, ValueError,
                   AssertionError, IndexError, KeyError, OSError)
 
@@ -76,17 +85,26 @@ def by_topic(timed: list[tuple[int, str, object]]) -> dict[str, list]:
 
 
 def read_timed_messages(bag: str | Path) -> list[tuple[int, str, object]]:
-    """(record time in ns, topic, message) of every message of a bag, in recording order."""
+    """(record time in ns, topic, message) of every message of a bag, in recording order. A bag
+    that cannot be used is one ValueError line: not closed, compressed per message
+    (MESSAGE_MODE_REFUSED) or past the unpacking limit, or not readable by the system."""
     typestore = get_typestore(Stores.ROS2_JAZZY)
     bag = Path(bag)
     check_unpacked_size(bag, bag_information(bag))  # before rosbags reads or unpacks anything
     try:
         with Reader(bag) as reader:
-            raws = [(timestamp, connection.topic, connection.msgtype, raw)
-                    for connection, timestamp, raw in reader.messages()]
+            per_message = reader.compression_mode == "message"  # as rosbags read metadata.yaml
+            raws = [] if per_message else [(timestamp, connection.topic, connection.msgtype, raw)
+                                           for connection, timestamp, raw in reader.messages()]
     except STORAGE_FAULTS as error:
+        if (failure := _read_error(error)) is not None:
+            # a ValueError still, as callers (a trial drawing its figures) take one for a bag
+            # they cannot use; but not called unclosed, nor sent to recover_bag
+            raise ValueError(f"{bag}: cannot be read ({failure})") from failure
         raise ValueError(f"{bag}: not a closed bag ({type(error).__name__}: {error}); if its "
                          f"recorder died, run `recover_bag {bag}`") from None
+    if per_message:
+        raise ValueError(f"{bag}: {MESSAGE_MODE_REFUSED}")
     return [(timestamp, topic, typestore.deserialize_cdr(raw, msgtype))
             for timestamp, topic, msgtype, raw in raws]
 
@@ -199,11 +217,15 @@ def compression_mode(information: dict) -> str:
 
 
 def check_unpacked_size(bag: Path, information: dict) -> None:
-    """Refuses (one ValueError line) a bag compressed per file whose files would unpack to more
-    than MAX_UNPACK_RATIO times their size (at least MIN_UNPACK_LIMIT): rosbags' Reader unpacks
-    them whole into $TMPDIR on opening. Counted by decompressing without writing, and no
-    further than the limit. Any other bag passes untouched."""
-    if compression_mode(information) != "file":
+    """Refuses (one ValueError line) a bag compressed per message (MESSAGE_MODE_REFUSED), and
+    one compressed per file whose files would unpack to more than MAX_UNPACK_RATIO times their
+    size (at least MIN_UNPACK_LIMIT): rosbags' Reader unpacks them whole into $TMPDIR on
+    opening. Counted by decompressing without writing, and no further than the limit. Any
+    other bag passes untouched."""
+    mode = compression_mode(information)
+    if mode == "message":
+        raise ValueError(f"{bag}: {MESSAGE_MODE_REFUSED}")
+    if mode != "file":
         return
     files = information.get("relative_file_paths") or []
     if not isinstance(files, list):
@@ -231,7 +253,8 @@ def recover(bag: Path) -> int | None:
     The unindexed file is kept beside it as `<name>.mcap.unindexed`. Returns the number of
     messages recovered, or None when the bag was complete already. Only regular files inside
     the bag are read or renamed, and nothing is changed unless at least one message is
-    recovered (ValueError otherwise)."""
+    recovered (ValueError otherwise). A bag the system fails to read (permission denied, an
+    I/O error) is an OSError, never taken for an incomplete one."""
     if (bag / "metadata.yaml").is_symlink() or (bag / "metadata.yaml").exists():
         _file_in_bag(bag, "metadata.yaml", "bag file")  # a FIFO here would block the read
     information = bag_information(bag)
@@ -248,8 +271,11 @@ def recover(bag: Path) -> int | None:
     try:
         with Reader(bag):
             return None
-    except STORAGE_FAULTS:
-        pass  # not a complete bag: recover it
+    except STORAGE_FAULTS as error:
+        if (failure := _read_error(error)) is not None:
+            raise OSError(f"{bag}: cannot be read ({failure}); not recovered, nothing "
+                          f"changed") from failure
+        # otherwise not a complete bag: recover it
     if information.get("storage_identifier") != "mcap" or len(files) != 1:
         raise ValueError(f"{bag}: only single-file MCAP bags can be recovered")
     if compression_mode(information):
@@ -370,6 +396,17 @@ def _file_in_bag(bag: Path, entry: object,
     return path
 
 
+def _read_error(error: BaseException) -> OSError | None:
+    """The system's failure to read a bag behind what opening it with rosbags raised, if that
+    is what it was: an OSError other than EINVAL (which rosbags' seek to the footer raises on
+    a file too short to hold one: a fault of the bag), or the OSError a ReaderError was raised
+    from (a storage file rosbags could not open: permission denied)."""
+    for fault in (error, error.__cause__):
+        if isinstance(fault, OSError) and fault.errno != errno.EINVAL:
+            return fault
+    return None
+
+
 def _why_empty(source: Path) -> str:
     """Why a file gave no message, in words for the one-line error."""
     with source.open("rb") as stream:
@@ -399,7 +436,10 @@ def main(argv: list[str] | None = None) -> int:
                     "unindexed file stays beside it as <name>.mcap.unindexed. A complete bag is "
                     "left as it is. A bag compressed per file is refused if it would unpack to "
                     f"more than {MAX_UNPACK_RATIO} times its size (at least "
-                    f"{MIN_UNPACK_LIMIT >> 20} MiB always pass).")
+                    f"{MIN_UNPACK_LIMIT >> 20} MiB always pass); one compressed per message "
+                    "(compression_mode: message) is refused, as rosbags unpacks its messages "
+                    "without a limit. A bag that cannot be read (permission denied, an I/O "
+                    "error) is reported, never recovered.")
     parser.add_argument("bag", type=Path, help="the bag directory (holds metadata.yaml)")
     return run_command(report_recovery, parser.parse_args(argv), "recover_bag")
 

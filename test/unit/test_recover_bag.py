@@ -1,10 +1,13 @@
 """`recover_bag` renames and rewrites files, so it must touch only regular files inside the bag,
 and must say so (exit 2, one line) rather than "0 messages recovered" when it finds nothing.
 What a bag may cost is bounded before anything is done with it (aliases in metadata.yaml, what
-a compressed file unpacks to), and an interrupted recovery leaves nothing behind."""
+a compressed file unpacks to, bags compressed per message refused), an interrupted recovery
+leaves nothing behind, and a bag the system fails to read is never taken for an incomplete
+one."""
 
 from __future__ import annotations
 
+import errno
 import os
 import resource
 import signal
@@ -201,19 +204,15 @@ def test_recover_bag_still_indexes_a_cut_off_recording(cut, kept, tmp_path, caps
     assert "complete already" in capsys.readouterr().out
 
 
-def recover_in_process_of_its_own(bag: Path, tmp: Path, prelude: str = ""
-                                  ) -> subprocess.CompletedProcess:
-    """`recover_bag BAG` in a fresh process with `tmp` as its $TMPDIR, bounded in time, memory
-    and file size (RUN_*); `prelude` runs before it. A run past the time limit fails the
-    test."""
+def in_process_of_its_own(code: str, bag: Path, tmp: Path) -> subprocess.CompletedProcess:
+    """Python `code` run with BAG as its argument in a fresh process with `tmp` as its
+    $TMPDIR, bounded in time, memory and file size (RUN_*). A run past the time limit fails
+    the test."""
 
     def limits() -> None:
         resource.setrlimit(resource.RLIMIT_AS, (RUN_MEMORY, RUN_MEMORY))
         resource.setrlimit(resource.RLIMIT_FSIZE, (RUN_FILE_SIZE, RUN_FILE_SIZE))
 
-    code = (f"import sys\n{prelude}\n"
-            "from constrained_diffusion_ros.evaluation import bags\n"
-            "sys.exit(bags.main(sys.argv[1:]))\n")
     env = dict(os.environ, TMPDIR=str(tmp), OMP_NUM_THREADS="1",
                PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
     try:
@@ -221,7 +220,16 @@ def recover_in_process_of_its_own(bag: Path, tmp: Path, prelude: str = ""
                               preexec_fn=limits, capture_output=True, text=True,
                               timeout=RUN_TIMEOUT_S)
     except subprocess.TimeoutExpired:
-        pytest.fail(f"recover_bag still ran after {RUN_TIMEOUT_S} s")
+        pytest.fail(f"the command still ran after {RUN_TIMEOUT_S} s")
+
+
+def recover_in_process_of_its_own(bag: Path, tmp: Path, prelude: str = ""
+                                  ) -> subprocess.CompletedProcess:
+    """`recover_bag BAG` run by `in_process_of_its_own`; `prelude` runs before it."""
+    code = (f"import sys\n{prelude}\n"
+            "from constrained_diffusion_ros.evaluation import bags\n"
+            "sys.exit(bags.main(sys.argv[1:]))\n")
+    return in_process_of_its_own(code, bag, tmp)
 
 
 def assert_refused(result: subprocess.CompletedProcess, named: str) -> None:
@@ -293,18 +301,28 @@ def test_recover_bag_refuses_a_decompression_bomb_without_writing_it(tmp_path):
     assert tree(tmp_path) == before
 
 
+def complete_bag(bag: Path, compression: CompressionMode | None = None,
+                 stored: list[bytes] | None = None) -> Path:
+    """A closed bag of /pusher messages "step 0" to "step 2" (or of `stored`, the bytes as
+    they are), compressed with zstd as `compression` says."""
+    writer = Writer(bag, version=bags.BAG_VERSION, storage_plugin=bags.StoragePlugin.MCAP)
+    if compression is not None:
+        writer.set_compression(compression, CompressionFormat.ZSTD)
+    writer.open()
+    connection = writer.add_connection("/pusher", STRING, typestore=TYPESTORE)
+    if stored is None:
+        stored = [TYPESTORE.serialize_cdr(TYPESTORE.types[STRING](data=f"step {step}"), STRING)
+                  for step in range(3)]
+    for step, data in enumerate(stored):
+        writer.write(connection, step + 1, data)
+    writer.close()
+    return bag
+
+
 def test_recover_bag_leaves_a_complete_compressed_bag_alone(tmp_path, capsys):
     """The limit does not stop an honest bag compressed per file: it is found complete, and
     read back."""
-    writer = Writer(tmp_path / "bag", version=bags.BAG_VERSION,
-                    storage_plugin=bags.StoragePlugin.MCAP)
-    writer.set_compression(CompressionMode.FILE, CompressionFormat.ZSTD)
-    writer.open()
-    connection = writer.add_connection("/pusher", STRING, typestore=TYPESTORE)
-    for step in range(3):
-        data = TYPESTORE.serialize_cdr(TYPESTORE.types[STRING](data=f"step {step}"), STRING)
-        writer.write(connection, step + 1, data)
-    writer.close()
+    complete_bag(tmp_path / "bag", CompressionMode.FILE)
     information = yaml.safe_load((tmp_path / "bag" / "metadata.yaml").read_text())
     assert information["rosbag2_bagfile_information"]["compression_mode"].lower() == "file"
     before = tree(tmp_path)
@@ -346,4 +364,120 @@ def test_read_messages_names_a_file_that_is_not_a_whole_mcap(tmp_path):
     is a one-line ValueError pointing at recover_bag, not a TypeError from rosbags' parser."""
     bag = with_storage(tmp_path, lambda path: path.write_bytes(bags.MCAP_MAGIC))
     with pytest.raises(ValueError, match=r"not a closed bag .*recover_bag"):
+        bags.read_messages(bag)
+
+
+def message_bomb(bag: Path) -> Path:
+    """A closed bag whose one message is stored as 4 GiB of zeros in 200 kB of zstd (4096
+    frames of 1 MiB each), marked compressed per message (zstd): rosbags' reader unpacks each
+    message with zstd.decompress, whole, whatever its size."""
+    complete_bag(bag, stored=[zstd.compress(bytes(1 << 20)) * 4096])
+    edit_information(bag, lambda info: info.update(compression_format="zstd",
+                                                   compression_mode="message"))
+    return bag
+
+
+def test_read_messages_refuses_a_bag_compressed_per_message(tmp_path):
+    """Review of issue 41, finding 6.2: the decompression bomb, compressed per message instead
+    of per file, went past the limit and unpacked in memory when the bag was read (here: past
+    the 1 GiB the process may use, a MemoryError). A bag compressed per message is refused in
+    one ValueError line before a message is read."""
+    bag = message_bomb(tmp_path / "bag")
+    code = ("import sys\n"
+            "from constrained_diffusion_ros.evaluation import bags\n"
+            "try:\n"
+            "    bags.read_messages(sys.argv[1])\n"
+            "except ValueError as error:\n"
+            "    print(error)\n"
+            "    sys.exit(2)\n"
+            "print('read')\n")
+    (tmp_path / "tmp").mkdir()
+    before = tree(tmp_path)
+    result = in_process_of_its_own(code, bag, tmp_path / "tmp")
+    assert result.returncode == 2, (result.returncode, result.stderr[-2000:])
+    assert result.stdout.splitlines() == [f"{bag}: {bags.MESSAGE_MODE_REFUSED}"]
+    assert tree(tmp_path) == before
+
+
+def test_recover_bag_refuses_a_bag_compressed_per_message(tmp_path):
+    """The command says so too, in one line (and in --help), rather than "complete already" of
+    a bag that nothing here will read."""
+    bag = message_bomb(tmp_path / "bag")
+    (tmp_path / "tmp").mkdir()
+    before = tree(tmp_path)
+    result = recover_in_process_of_its_own(bag, tmp_path / "tmp")
+    assert_refused(result, "compressed per message (compression_mode: message)")
+    assert tree(tmp_path) == before
+    usage = in_process_of_its_own(
+        "from constrained_diffusion_ros.evaluation import bags\nbags.main(['--help'])\n",
+        bag, tmp_path / "tmp").stdout
+    assert "compression_mode: message" in " ".join(usage.split())
+
+
+def test_read_messages_asks_rosbags_what_compression_it_reads(tmp_path, monkeypatch):
+    """Were metadata.yaml read otherwise by the package than by rosbags, rosbags' own view of
+    an honest bag compressed per message still has it refused, before a message is read."""
+    bag = complete_bag(tmp_path / "bag", CompressionMode.MESSAGE)
+    assert bags.compression_mode(bags.bag_information(bag)) == "message"
+    monkeypatch.setattr(bags, "compression_mode", lambda information: "")
+    with pytest.raises(ValueError, match="compression_mode: message"):
+        bags.read_messages(bag)
+
+
+def denied_storage() -> str:
+    """Prelude: opening a .mcap file fails as when its permissions deny it (the tests run as
+    root, whom chmod does not stop). rosbags raises ReaderError from the PermissionError."""
+    return ("import errno, pathlib\n"
+            "real_open = pathlib.Path.open\n"
+            "def denied(self, *args, **kwargs):\n"
+            "    if self.suffix == '.mcap':\n"
+            "        raise PermissionError(errno.EACCES, 'Permission denied', str(self))\n"
+            "    return real_open(self, *args, **kwargs)\n"
+            "pathlib.Path.open = denied\n")
+
+
+def failing_disk() -> str:
+    """Prelude: reading a storage file fails with EIO, as on a failing disk, after it opened
+    (rosbags raises the OSError as it is); the package's own reader of MCAP records still
+    reads it, so a recovery would go through."""
+    return ("import errno\n"
+            "from rosbags.rosbag2 import storage_mcap\n"
+            "def failing(self):\n"
+            "    raise OSError(errno.EIO, 'Input/output error')\n"
+            "storage_mcap.McapReader._open = failing\n")
+
+
+@pytest.mark.parametrize(("fault", "named"), [(denied_storage, "Permission denied"),
+                                              (failing_disk, "Input/output error")])
+def test_recover_bag_reports_a_bag_it_cannot_read_and_recovers_nothing(fault, named, tmp_path):
+    """Review of issue 41, finding 6: OSError was among the faults of an incomplete bag, so a
+    complete bag the system failed to read (permission denied, an I/O error) was "recovered":
+    rewritten with a custom_data saying its recorder had died. Now one line naming the error,
+    exit 2, no recovery attempted and nothing changed."""
+    bag = complete_bag(tmp_path / "bag")
+    prelude = (fault() +
+               "from constrained_diffusion_ros.evaluation import bags\n"
+               "rewrite = bags._rewrite\n"
+               "def attempted(*args):\n"
+               "    print('recovery attempted')\n"
+               "    return rewrite(*args)\n"
+               "bags._rewrite = attempted\n")
+    (tmp_path / "tmp").mkdir()
+    before = tree(tmp_path)
+    result = recover_in_process_of_its_own(bag, tmp_path / "tmp", prelude)
+    assert_refused(result, named)  # and nothing on stdout: no recovery attempted
+    assert "not recovered" in result.stderr
+    assert tree(tmp_path) == before
+
+
+def test_read_messages_says_a_bag_cannot_be_read_rather_than_not_closed(tmp_path, monkeypatch):
+    """The readers of bags do not send a bag the system fails to read to recover_bag."""
+    from rosbags.rosbag2 import storage_mcap
+
+    def failing(_self: object) -> None:
+        raise OSError(errno.EIO, "Input/output error")
+
+    bag = complete_bag(tmp_path / "bag")
+    monkeypatch.setattr(storage_mcap.McapReader, "_open", failing)
+    with pytest.raises(ValueError, match=r"cannot be read \(\[Errno 5\] Input/output error\)$"):
         bags.read_messages(bag)

@@ -297,7 +297,22 @@ class PolicyNode(Node):
                           executor_realtime=self.executor_realtime)
             values["planning_error"] = one_line(values["planning_error"] or "")
         values["zone_ids"] = ",".join(str(i) for i in self.zones.ids)
+        values.update(self._nearest_zone())
         self.status.publish(values)
+
+    def _nearest_zone(self) -> dict[str, object]:
+        """The zone nearest the pusher: its id, the gap between it and the pusher's disc (px,
+        negative: overlapping) and the speed assumed of it (px/s); the zones measured faster
+        than `zone_speed_bound`."""
+        pusher = self.observations.pusher
+        nearest = None if pusher is None else self.zones.nearest(pusher)
+        if nearest is None:
+            return {}
+        zone_id, distance, speed = nearest
+        return {"nearest_zone": zone_id,
+                "nearest_zone_gap_px": f"{distance - self.robot.pusher_radius:.1f}",
+                "nearest_zone_speed": f"{speed:.0f}",
+                "zones_over_speed_bound": ",".join(map(str, self.zones.motion.over_bound()))}
 
 
 def main(args: list[str] | None = None) -> int:

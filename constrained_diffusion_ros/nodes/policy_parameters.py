@@ -15,6 +15,7 @@ from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones.area import Bounds, RestrictedArea
 from constrained_diffusion_ros.zones.grid import DEFAULT_THRESHOLD, MaskCaps
 from constrained_diffusion_ros.zones.live import DEFAULT_MAX_VERTICES, DEFAULT_MAX_ZONES, LiveZones
+from constrained_diffusion_ros.zones.motion import DEFAULT_SPEED_BOUND
 from constrained_diffusion_ros.zones.plugins import load_area
 from msg_schemas.parameters import Param
 from msg_schemas.text import one_line
@@ -76,6 +77,9 @@ PARAMETERS = (
           "whatever else wakes runs first) where the node may raise it again (CAP_SYS_NICE "
           "or RLIMIT_NICE), and at nice 5 for good once it gets under a quarter of a core; false: "
           "nice 5 throughout", read_only=True),
+    Param("zone_speed_bound", DEFAULT_SPEED_BOUND, "px/s: the speed assumed of a zone whose own "
+          "is not measured yet (a zone id republished with new stamps is measured), and the "
+          "bound a measured one is held to (faster: WARN)", read_only=True, low=0.0),
     Param("max_zones", DEFAULT_MAX_ZONES, "zones in force at most; more are refused",
           read_only=True, low=1),
     Param("max_vertices", DEFAULT_MAX_VERTICES, "vertices per zone at most", read_only=True,
@@ -133,7 +137,8 @@ def live_zones(values: dict, workspace: Bounds) -> LiveZones:
                         workspace)
     if values["mode"] == "realtime" and values["planning_process"]:
         check_picklable(area, values["restricted_area"])
-    return LiveZones(values["max_zones"], values["max_vertices"], area, workspace=workspace)
+    return LiveZones(values["max_zones"], values["max_vertices"], area, workspace=workspace,
+                     speed_bound=values["zone_speed_bound"])
 
 
 def plug_in_area(spec: str, parameters: str, workspace: Bounds) -> RestrictedArea | None:

@@ -95,6 +95,9 @@ class StatusReporter:
             problems.append(f"configuration changed at run time, now "
                             f"{values.get('configuration')!r} (guarantee "
                             f"{values.get('guarantee')})")
+        if values.get("zones_over_speed_bound"):
+            problems.append(f"zone(s) {values['zones_over_speed_bound']} move faster than "
+                            f"zone_speed_bound (the speed a zone is assumed to keep)")
         if since["late_steps"]:
             problems.append(f"planning missed its deadline ({since['late_steps']} step(s) "
                             f"with no waypoint)")

@@ -13,6 +13,7 @@ from numpy.typing import ArrayLike
 
 from constrained_diffusion_ros.zones.area import AreaUnion, Bounds, RestrictedArea
 from constrained_diffusion_ros.zones.geometry import ZoneSet, validate_polygon
+from constrained_diffusion_ros.zones.motion import DEFAULT_SPEED_BOUND, ZoneMotion
 
 ZoneId = str | int
 
@@ -73,8 +74,10 @@ class LiveZones:
 
     def __init__(self, max_zones: int = DEFAULT_MAX_ZONES,
                  max_vertices: int = DEFAULT_MAX_VERTICES,
-                 fixed: RestrictedArea | None = None, workspace: Bounds | None = None) -> None:
+                 fixed: RestrictedArea | None = None, workspace: Bounds | None = None,
+                 speed_bound: float = DEFAULT_SPEED_BOUND) -> None:
         self.max_zones, self.max_vertices = max_zones, max_vertices
+        self.motion = ZoneMotion(speed_bound)  # each id's velocity, from its stamped updates
         self.workspace = workspace  # zones are clipped to it, so what is accepted is enforced
         self.fixed = fixed  # always in force besides the zones (a plug-in check)
         self._union: tuple[ZoneSet, RestrictedArea] | None = None
@@ -123,6 +126,8 @@ class LiveZones:
                 raise ValueError(f"zone {zone_id!r}: {self.max_zones} zones in force already "
                                  f"(the cap); remove one first")
             self._zones[zone_id] = _Zone(polygon, vertices, expires_at, capped, stamp)
+            self.motion.observe(zone_id, shapely.get_coordinates(polygon.centroid)[0],
+                                now if stamp is None else stamp)
             if previous is None or not previous.polygon.equals_exact(polygon, 0.0):
                 self._changed()  # a re-published, identical zone only refreshes its lifetime
         return True
@@ -149,6 +154,7 @@ class LiveZones:
     def remove(self, zone_id: ZoneId) -> bool:
         """Drop a zone; returns whether it existed."""
         with self._lock:
+            self.motion.forget(zone_id)
             if self._zones.pop(zone_id, None) is None:
                 return False
             self._changed()
@@ -162,6 +168,7 @@ class LiveZones:
                                 if z.stamp is not None)
             while len(self.cleared) > CLEARED_KEPT:
                 self.cleared.pop(next(iter(self.cleared)))
+            self.motion.clear()
             if self._zones:
                 self._zones.clear()
                 self._changed()
@@ -172,6 +179,7 @@ class LiveZones:
             gone = [i for i, zone in self._zones.items() if zone.expires_at <= now]
             for zone_id in gone:
                 del self._zones[zone_id]
+                self.motion.forget(zone_id)
             if gone:
                 self._changed()
             return gone
@@ -209,6 +217,17 @@ class LiveZones:
         """Each zone in force by id, (V, 2) its outline: what viewers show."""
         with self._lock:
             return {zone_id: zone.vertices for zone_id, zone in self._zones.items()}
+
+    def nearest(self, point: ArrayLike) -> tuple[ZoneId, float, float] | None:
+        """(id, distance in px, speed to assume in px/s) of the zone nearest `point` (distance
+        0 inside it), or None without zones: how close a moving zone is, for the status."""
+        where = shapely.Point(*np.asarray(point, dtype=float))
+        with self._lock:
+            if not self._zones:
+                return None
+            zone_id, zone = min(self._zones.items(),
+                                key=lambda item: item[1].polygon.distance(where))
+            return zone_id, float(zone.polygon.distance(where)), self.motion.speed(zone_id)
 
     @property
     def ids(self) -> list[ZoneId]:

@@ -1,0 +1,40 @@
+"""Zones that move, as the realtime node sees them: the same id republished with new stamps is
+measured, and /diagnostics show the nearest zone's gap and speed, and zones faster than the
+bound."""
+
+from __future__ import annotations
+
+from diagnostic_msgs.msg import DiagnosticStatus
+from geometry_msgs.msg import Point32, PolygonInstanceStamped
+from realtime_link import PUSHER, RealtimeLink
+
+from msg_schemas import FRAME_ID
+
+
+def publish_square(link: RealtimeLink, zone_id: int, x: float, y: float, now_ns: int) -> None:
+    msg = PolygonInstanceStamped()
+    msg.header.frame_id, msg.polygon.id = FRAME_ID, zone_id
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(now_ns, 10**9)
+    msg.polygon.polygon.points = [Point32(x=a, y=b, z=0.0) for a, b in (
+        (x, y), (x + 30, y), (x + 30, y + 30), (x, y + 30))]
+    link.zones.publish(msg)
+
+
+def test_a_republished_zone_is_measured_and_one_too_fast_is_said(
+        ros, processes, tiny_model, configurations_file) -> None:
+    link = RealtimeLink(ros, processes, tiny_model, configurations_file, 0.1,
+                        zone_speed_bound=300.0)
+    link.planning()
+    start = ros.node.get_clock().now().nanoseconds
+    for k in range(8):  # 100 px/s toward the pusher, then 1000 px/s across the far corner
+        t_ns = start + k * 100_000_000
+        publish_square(link, 21, PUSHER[0] + 100.0 - 10.0 * k, PUSHER[1] - 15.0, t_ns)
+        publish_square(link, 22, 100.0 * k, 0.0, t_ns)
+        ros.spin_until(lambda: False, 0.1)
+    status = link.latest_status(lambda v: v.get("zones_over_speed_bound") == "22")
+    assert status["nearest_zone"] == "21"
+    assert abs(float(status["nearest_zone_speed"]) - 100.0) <= 1.0
+    # The square's near side is 100 - 70 = 30 px from the pusher's centre: a 15 px gap.
+    assert abs(float(status["nearest_zone_gap_px"]) - 15.0) <= 0.5
+    assert link.statuses[-1].status[0].level >= DiagnosticStatus.WARN
+    assert "faster than zone_speed_bound" in link.statuses[-1].status[0].message

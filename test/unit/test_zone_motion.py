@@ -1,0 +1,80 @@
+"""Zone motion: a velocity per id from its stamped updates, the bound assumed where none is
+measured, and the live zone set keeping it as zones come, move and go."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from constrained_diffusion_ros.zones.live import LiveZones
+from constrained_diffusion_ros.zones.motion import MAX_GAP_S, MIN_UPDATES, ZoneMotion
+
+pytestmark = pytest.mark.unit
+
+
+def square(x: float, y: float, side: float = 50.0) -> np.ndarray:
+    return np.array([(x, y), (x + side, y), (x + side, y + side), (x, y + side)])
+
+
+@given(vx=st.floats(-400, 400), vy=st.floats(-400, 400), rate=st.sampled_from([10.0, 20.0, 50.0]))
+def test_a_zone_moving_steadily_is_measured_at_its_velocity(vx: float, vy: float,
+                                                            rate: float) -> None:
+    motion = ZoneMotion(speed_bound=1000.0)
+    for k in range(6):
+        t = k / rate
+        motion.observe(7, (100 + vx * t, 200 + vy * t), t)
+    assert motion.measured(7)
+    assert np.allclose(motion.velocity(7), (vx, vy), atol=1e-6)
+    assert motion.speed(7) == pytest.approx(np.hypot(vx, vy), abs=1e-6)
+
+
+def test_a_zone_not_yet_measured_is_assumed_to_move_at_the_bound() -> None:
+    motion = ZoneMotion(speed_bound=250.0)
+    assert motion.speed("unknown") == 250.0
+    for k in range(MIN_UPDATES - 1):
+        motion.observe(1, (100.0 + k, 100.0), 0.1 * k)
+    assert not motion.measured(1) and motion.speed(1) == 250.0
+    assert np.array_equal(motion.velocity(1), (0.0, 0.0))
+    motion.observe(1, (100.0 + MIN_UPDATES - 1, 100.0), 0.1 * (MIN_UPDATES - 1))
+    assert motion.measured(1) and motion.speed(1) == pytest.approx(10.0)
+
+
+def test_replays_and_pauses_say_nothing_of_motion() -> None:
+    """A replay (same stamp, or older) is not a displacement in no time; after a pause longer
+    than MAX_GAP_S the estimate starts afresh, not averaged over the pause."""
+    motion = ZoneMotion()
+    for k in range(4):
+        motion.observe(1, (100.0 + 10 * k, 100.0), 0.1 * k)
+    motion.observe(1, (500.0, 500.0), 0.3)  # a replay of the last stamp, elsewhere
+    motion.observe(1, (0.0, 0.0), 0.1)  # out of order
+    assert motion.speed(1) == pytest.approx(100.0)
+    motion.observe(1, (400.0, 100.0), 0.3 + MAX_GAP_S + 0.5)
+    assert not motion.measured(1)
+
+
+def test_a_zone_faster_than_the_bound_is_named() -> None:
+    motion = ZoneMotion(speed_bound=100.0)
+    for k in range(4):
+        motion.observe("fast", (50.0 * k, 0.0), 0.1 * k)  # 500 px/s
+        motion.observe("slow", (5.0 * k, 0.0), 0.1 * k)  # 50 px/s
+    assert motion.over_bound() == ["fast"]
+
+
+def test_the_live_zones_measure_a_republished_zone_and_forget_one_that_goes() -> None:
+    zones = LiveZones(speed_bound=300.0)
+    for k in range(5):  # 100 px/s to the right, republished at 10 Hz with its stamp
+        zones.upsert(3, square(100 + 10 * k, 100), now=0.1 * k + 0.01, stamp=0.1 * k)
+    assert zones.motion.speed(3) == pytest.approx(100.0)
+    zone_id, distance, speed = zones.nearest((160.0, 300.0))  # below its 140..190 x 100..150
+    assert zone_id == 3 and distance == pytest.approx(150.0) and speed == pytest.approx(100.0)
+    assert zones.nearest((170.0, 120.0))[1] == 0.0  # inside
+    zones.upsert(3, [], now=1.0)
+    assert not zones.motion.measured(3) and zones.nearest((0.0, 0.0)) is None
+    zones.upsert(4, square(0, 0), now=2.0)  # unstamped: measured on the node's clock
+    zones.upsert(4, square(20, 0), now=2.1)
+    zones.upsert(4, square(40, 0), now=2.2)
+    assert zones.motion.speed(4) == pytest.approx(200.0)
+    zones.clear()
+    assert zones.motion.speed(4) == 300.0

@@ -85,6 +85,7 @@ class PolicyNode(Node):
         self.loop: ChunkLoop | None = None
         self.configuration_changes = 0
         self.changes_refused = 0  # run-time parameter changes refused for weakening the filter
+        self.runs_restarted = 0  # realtime: observations whose stamp went back (a new run)
         self._use_configuration(values["configuration"])
         startup.mark("planner and its worker")
         self.add_on_set_parameters_callback(self._on_parameters)
@@ -207,6 +208,7 @@ class PolicyNode(Node):
         step = step_of_stamp(stamp_msg, self.robot.control_hz)
         if self.realtime:  # the setpoint the clock sends from now on
             new_run = self.observations.starts_run(stamp)
+            restarted = new_run and self.observations.pusher_stamp is not None
             if new_run:  # a reset: the run before's setpoint is never sent again, and nothing
                 self.latest_stamp = None  # is sent until this run's first observation is taken
                 self.output.withdraw()
@@ -214,6 +216,8 @@ class PolicyNode(Node):
             if observation is not None:
                 if new_run:  # none of the run before's plans (one in flight) goes into this
                     self.loop.reset()  # one, even where its first stamp equals the last
+                # A reset, or a participant sending old stamps: said either way (WARN).
+                self.runs_restarted += restarted
                 self.latest_stamp = stamp_msg
                 self._send(self.loop.observe(step, observation), publish=False)
             return
@@ -287,7 +291,8 @@ class PolicyNode(Node):
     def _publish_status(self, planning_ms: float) -> None:
         values = {"configuration": self.config.name, "guarantee": self.config.guarantee,
                   "configuration_changes": self.configuration_changes,
-                  "changes_refused": self.changes_refused, "mode": self.mode,
+                  "changes_refused": self.changes_refused,
+                  "runs_restarted": self.runs_restarted, "mode": self.mode,
                   **self.output.status(), **self.observations.status(),
                   **self.standstills.status(self.robot.control_hz),
                   "plans": self.loop.stats.planner_calls, "planning_ms": f"{planning_ms:.1f}",

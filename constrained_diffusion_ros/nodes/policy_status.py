@@ -19,7 +19,8 @@ ZONE_CHECK_KEYS = ("zone_check_errors", "zone_check_failed", "zone_check_error")
 # Their rise since the last report sets the diagnostic level.
 HEALTH_COUNTERS = ("violations", "unsound_setpoints", "zones_refused", "masks_refused",
                    "observations_refused", "late_steps", "planning_errors", "ticks_withheld",
-                   "configuration_changes", "changes_refused", "zone_check_errors")
+                   "configuration_changes", "changes_refused", "zone_check_errors",
+                   "runs_restarted")
 
 
 class StatusReporter:
@@ -98,6 +99,10 @@ class StatusReporter:
         if values.get("zones_over_speed_bound"):
             problems.append(f"zone(s) {values['zones_over_speed_bound']} move faster than "
                             f"zone_speed_bound (the speed a zone is assumed to keep)")
+        if since["runs_restarted"]:
+            problems.append(f"{since['runs_restarted']} new run(s): an observation stamped no "
+                            f"later than the last (a reset, or a participant sending old "
+                            f"stamps)")
         if since["late_steps"]:
             problems.append(f"planning missed its deadline ({since['late_steps']} step(s) "
                             f"with no waypoint)")

@@ -75,7 +75,7 @@ class RealtimeObservations:
         planner = ConstrainedPlanner(policy, config, PUSHT_ROBOT)
         self.loop = ChunkLoop.simulated(planner, zones, delay=delay, handover="async")
         node = SimpleNamespace(realtime=True, robot=PUSHT_ROBOT, zones=zones, sound=sound,
-                               loop=self.loop, latest_stamp=None,
+                               loop=self.loop, latest_stamp=None, runs_restarted=0,
                                standstills=StandstillCounts(),
                                output=SetpointOutput(self.stand_in, sound))
         for method in ("_on_observation", "_take", "_send"):
@@ -167,6 +167,9 @@ def test_the_policy_sends_nothing_of_the_run_before_once_the_new_run_begins(
     link.observe()  # step 1, taken
     assert ros.spin_until(lambda: step_ns(1) in stamps[mark:], 2 * TICK_S + 5)
     assert set(stamps[mark:]) == {step_ns(1)}
+    # A new run is said (it may as well be a participant sending old stamps).
+    status = link.latest_status(lambda v: v.get("runs_restarted") == "1")
+    assert any("new run(s)" in s.status[0].message for s in link.statuses), status
 
 
 def targets_held(positions: np.ndarray) -> np.ndarray:

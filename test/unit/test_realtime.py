@@ -589,17 +589,7 @@ def test_the_planning_process_exits_when_the_node_is_killed(make_tiny_policy, tm
         node.kill()
         node.wait()
 
-    def gone() -> bool:
-        try:
-            return "State:\tZ" in Path(f"/proc/{child}/status").read_text()  # a zombie
-        except FileNotFoundError:
-            return True
-
-    for _ in range(3000):
-        if gone():
-            break
-        threading.Event().wait(0.02)
-    assert gone()
+    assert until(lambda: exited(child), timeout=60)
 
 
 def test_a_planning_child_whose_node_is_killed_mid_plan_exits_without_a_traceback(
@@ -634,15 +624,17 @@ def test_a_planning_child_whose_node_is_killed_mid_plan_exits_without_a_tracebac
             node.kill()
             node.wait()
 
-    def gone() -> bool:
-        try:
-            return "State:\tZ" in Path(f"/proc/{child}/status").read_text()  # a zombie
-        except FileNotFoundError:
-            return True
-
-    assert until(gone, timeout=30)
+    assert until(lambda: exited(child), timeout=30)
     printed = stderr.read_text()
     assert "Traceback" not in printed and len(printed.splitlines()) <= 1, printed
+
+
+def exited(pid: int) -> bool:
+    """Whether process `pid` has exited (gone, or a zombie its parent has not reaped)."""
+    try:
+        return "State:\tZ" in Path(f"/proc/{pid}/status").read_text()
+    except FileNotFoundError:
+        return True
 
 
 def until(condition, timeout: float) -> bool:

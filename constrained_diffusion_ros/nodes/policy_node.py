@@ -101,7 +101,8 @@ class PolicyNode(Node):
         self.zone_ingest = ZoneIngest(
             self, self.zones, self.robot.workspace,
             MaskCaps(pieces=values["max_mask_pieces"], vertices=values["max_mask_vertices"]),
-            self._zones_changed, realtime=self.realtime, marker_period_s=1.0 / self.rate_hz)
+            self._zones_changed, realtime=self.realtime, marker_period_s=1.0 / self.rate_hz,
+            alive=self.output.beat)
         self.observations = ObservationInput(self, self.robot, self._on_observation)
         self.last_stamp = -1.0  # lockstep: the observation answered last
         self.latest_stamp = None  # realtime: the newest observation's stamp

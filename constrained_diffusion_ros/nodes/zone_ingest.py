@@ -46,6 +46,7 @@ MARKER_NAMESPACE = "zones"  # zone markers: marker namespace <node namespace>/zo
 EXPIRY_PERIOD_S = 0.2  # zones past their lifetime are dropped this often
 COUNTS = ("zone_messages", "zones_applied", "zones_refused", "zones_oversized", "zones_stale",
           "zone_batches", "masks_applied", "masks_refused")
+PACING_SLICE_S = 0.05  # a paced batch waits in slices this long, telling `alive` between them
 OVERSIZED_LOG_PERIOD_S = 1.0  # a flood of oversized messages is logged this often at most
 
 
@@ -73,9 +74,9 @@ class ZoneIngest:
 
     def __init__(self, node: Node, zones: LiveZones, workspace: Bounds, mask_caps: MaskCaps,
                  on_change: Callable[[float], None], realtime: bool,
-                 marker_period_s: float) -> None:
+                 marker_period_s: float, alive: Callable[[], None] = lambda: None) -> None:
         self.node, self.zones, self.workspace, self.mask_caps = node, zones, workspace, mask_caps
-        self.on_change, self.realtime = on_change, realtime
+        self.on_change, self.realtime, self.alive = on_change, realtime, alive
         self.counts = dict.fromkeys(COUNTS, 0)
         self.zone_cap = zone_message_cap(zones.max_vertices)  # bytes
         self.mask_cap = mask_message_cap(mask_caps.cells)
@@ -141,8 +142,11 @@ class ZoneIngest:
         the wait coalesces the messages meanwhile, so nothing is lost and a zone waits no
         longer than behind a batch."""
         received = time.monotonic()
-        if self.realtime and received < self._paced_until:
-            time.sleep(self._paced_until - received)  # frees the CPU and the lock
+        # Pacing is the executor at work, not stalled: `alive` (the clock's watchdog) is told
+        # while it waits, and when the batch is done.
+        while self.realtime and (wait := self._paced_until - time.monotonic()) > 0:
+            self.alive()
+            time.sleep(min(wait, PACING_SLICE_S))  # frees the CPU and the lock
         messages = [(data, info)]
         for subscription in self.subscriptions:
             messages += self._take_waiting(subscription, ZONE_BATCH_MAX - len(messages))
@@ -178,6 +182,7 @@ class ZoneIngest:
             self._changed(received)
         finished = time.monotonic()
         self._paced_until = finished + (finished - max(received, self._paced_until))
+        self.alive()
 
     def _seen_before(self, serialized: bytes, info: dict) -> bool:
         """Whether the other zone subscription already delivered this message (a latched

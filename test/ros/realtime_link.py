@@ -17,7 +17,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Point32, PointStamped, PolygonInstanceStamped, PolygonStamped
 from nav_msgs.msg import OccupancyGrid
 from nav_msgs.msg import Path as PathMsg
-from ros_helpers import step_stamp
+from ros_helpers import observation_messages
 
 from msg_schemas import FRAME_ID, TOPICS
 from sim_bridge import AGENT_RADIUS
@@ -56,12 +56,7 @@ class RealtimeLink:
             and ros.node.count_publishers(TOPICS["setpoint"].name) >= 1), processes.logs()
 
     def observe(self, pusher: tuple[float, float] = PUSHER) -> None:
-        keypoints = PolygonStamped()
-        keypoints.header.stamp, keypoints.header.frame_id = step_stamp(self.step), FRAME_ID
-        keypoints.polygon.points = [Point32(x=256.0, y=256.0 + i, z=0.0) for i in range(9)]
-        message = PointStamped()
-        message.header = keypoints.header
-        message.point.x, message.point.y = pusher
+        keypoints, message = observation_messages(self.step, pusher)
         self.keypoints.publish(keypoints)
         self.pusher.publish(message)
         self.step += 1

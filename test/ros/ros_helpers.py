@@ -12,11 +12,12 @@ from collections.abc import Callable
 from pathlib import Path
 
 import rclpy
+from geometry_msgs.msg import Point32, PointStamped, PolygonStamped
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 
 from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_domain_id
-from msg_schemas import NAMESPACE, TOPICS, qos_profile, spin
+from msg_schemas import FRAME_ID, NAMESPACE, TOPICS, qos_profile, spin
 from msg_schemas.conversions import stamp_nanoseconds, stamp_of_step, step_of_stamp
 from sim_bridge import CONTROL_HZ
 
@@ -30,6 +31,7 @@ __all__ = [
     "SEED",
     "NodeProcesses",
     "Ros",
+    "observation_messages",
     "random_domain_id",
     "shown_zone_ids",
     "stamp_ns",
@@ -107,3 +109,16 @@ def step_stamp(step: int):
 
 def step_ns(step: int) -> int:
     return stamp_nanoseconds(step_stamp(step))
+
+
+def observation_messages(step: int, pusher: tuple[float, float]
+                         ) -> tuple[PolygonStamped, PointStamped]:
+    """The two halves of one observation of control step `step`, as the simulator stamps them:
+    a fixed T (keypoints up the middle) and the pusher at `pusher`."""
+    keypoints = PolygonStamped()
+    keypoints.header.stamp, keypoints.header.frame_id = step_stamp(step), FRAME_ID
+    keypoints.polygon.points = [Point32(x=256.0, y=256.0 + i, z=0.0) for i in range(9)]
+    message = PointStamped()
+    message.header = keypoints.header
+    message.point.x, message.point.y = pusher
+    return keypoints, message

@@ -18,7 +18,7 @@ import shapely
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import Point32, PointStamped, PolygonInstanceStamped, PolygonStamped
 from nav_msgs.msg import Path as PathMsg
-from ros_helpers import Ros, shown_zone_ids, stamp_step, step_stamp
+from ros_helpers import Ros, observation_messages, shown_zone_ids, stamp_step, step_stamp
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
@@ -250,12 +250,7 @@ EVERYTHING_ID = 500  # a zone id no other test of the module uses (their zones a
 
 def publish_observation(keypoints_pub, pusher_pub, step: int) -> None:
     """One observation of control step `step`: a fixed T and the pusher at PUSHER."""
-    keypoints = PolygonStamped()
-    keypoints.header.stamp, keypoints.header.frame_id = step_stamp(step), FRAME_ID
-    keypoints.polygon.points = [Point32(x=256.0, y=256.0 + i, z=0.0) for i in range(9)]
-    pusher = PointStamped()
-    pusher.header = keypoints.header
-    pusher.point.x, pusher.point.y = PUSHER
+    keypoints, pusher = observation_messages(step, PUSHER)
     keypoints_pub.publish(keypoints)
     pusher_pub.publish(pusher)
 

@@ -17,12 +17,12 @@ import numpy as np
 import shapely
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import Point32, PointStamped, PolygonStamped
+from geometry_msgs.msg import PointStamped
 from nav_msgs.msg import OccupancyGrid
 from nav_msgs.msg import Path as PathMsg
 from rclpy.logging import get_logger
 from realtime_link import TICK_S, RealtimeLink, status_values
-from ros_helpers import stamp_ns, step_ns, step_stamp
+from ros_helpers import observation_messages, stamp_ns, step_ns, step_stamp
 from std_srvs.srv import Trigger
 
 from constrained_diffusion_ros.nodes.observation_input import ObservationInput
@@ -84,12 +84,7 @@ class RealtimeObservations:
         self.node = node
 
     def observe(self, step: int, pusher: tuple[float, float]) -> None:
-        keypoints = PolygonStamped()
-        keypoints.header.stamp, keypoints.header.frame_id = step_stamp(step), FRAME_ID
-        keypoints.polygon.points = [Point32(x=256.0, y=256.0 + i, z=0.0) for i in range(9)]
-        message = PointStamped()
-        message.header = keypoints.header
-        message.point.x, message.point.y = pusher
+        keypoints, message = observation_messages(step, pusher)
         self.node.observations._on_keypoints(keypoints)
         self.node.observations._on_pusher(message)
 

@@ -37,7 +37,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = ArgumentParser("evaluate", __doc__.split("\n\n")[0])
     parser.add_argument("--model", default=str(default_model_dir()), help="policy directory")
     parser.add_argument("--scenarios", nargs="+", default=["all"],
-                        help="scenario names from config/scenarios.yaml, 'paper' or 'all'")
+                        help="scenario names from config/scenarios.yaml, 'paper', 'moving' "
+                             "(the zones that move: hands) or 'all'")
     parser.add_argument("--configs", nargs="+", default=["all"],
                         help="configuration names from config/configurations.yaml, 'paper' "
                              "or 'all'")
@@ -65,6 +66,8 @@ def select(available: dict, wanted: list[str], kind: str) -> list:
         return list(available.values())
     if wanted == ["paper"]:
         return [item for item in available.values() if item.paper]
+    if wanted == ["moving"]:  # scenarios whose zones move (hands)
+        return [item for item in available.values() if getattr(item, "moving", False)]
     unknown = [name for name in wanted if name not in available]
     if unknown:
         raise ValueError(f"unknown {kind} {unknown}; known: {', '.join(available)}")

@@ -11,6 +11,7 @@ from tqdm import tqdm
 
 from constrained_diffusion_ros.planning.chunk_loop import ChunkLoop, ZoneSource
 from constrained_diffusion_ros.planning.planners import ChunkPlanner
+from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from sim_bridge import SUCCESS_THRESHOLD, PushTBatch, score_from_coverage
 
 
@@ -27,6 +28,7 @@ class RolloutLog:
     planning_s: float = 0.0  # wall time inside the planner
     planned_chunks: int = 0  # episode-chunks planned (a batched call of R rows counts R)
     planner_calls: int = 0
+    zone_offsets: np.ndarray | None = None  # (E, T, 2) px each episode's zones were moved by
 
     @property
     def scores(self) -> np.ndarray:
@@ -64,7 +66,10 @@ def rollout(planner: ChunkPlanner, seeds: Sequence[int], n_steps: int = 200,
     with tqdm(total=n_steps, desc=description, unit="step", disable=not progress,
               leave=False) as bar:
         for step in range(n_steps):
-            action = loop.observe(step, sims.observations())
+            observations = sims.observations()
+            if hasattr(zones, "follow"):  # zones that home on the pusher
+                zones.follow(step, PUSHT_ROBOT.pusher(observations))
+            action = loop.observe(step, observations)
             if loop.zone_check_error is not None:  # offline, a stopped pusher is no result
                 raise ValueError(f"{loop.zone_check_error} (step {step}): no figures from it")
             states.append(sims.step(action))
@@ -79,4 +84,13 @@ def rollout(planner: ChunkPlanner, seeds: Sequence[int], n_steps: int = 200,
                       executed_chunk=np.stack(executed_chunk, axis=1),
                       wanted=np.stack(wanted, axis=1),
                       planning_s=stats.planning_s, planned_chunks=stats.planned_chunks,
-                      planner_calls=stats.planner_calls)
+                      planner_calls=stats.planner_calls,
+                      zone_offsets=_zone_offsets(zones, n_steps))
+
+
+def _zone_offsets(zones: ZoneSource | None, n_steps: int) -> np.ndarray | None:
+    """(E, T, 2) where a zone source that moves zones per episode had them, step by step."""
+    offsets = getattr(zones, "offsets", None)
+    if not offsets or any(step not in offsets for step in range(n_steps)):
+        return None
+    return np.stack([offsets[step] for step in range(n_steps)], axis=1)

@@ -19,9 +19,17 @@ from constrained_diffusion_ros.planning.liveness import STANDSTILL_NEAR_PX, stan
 from constrained_diffusion_ros.planning.planners import MixedPlanner
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
+from constrained_diffusion_ros.evaluation.zone_paths import ZoneMover
+from constrained_diffusion_ros.zones.area import RestrictedArea, Translated
 from constrained_diffusion_ros.zones.episodes import EpisodeZones
+from constrained_diffusion_ros.zones.geometry import ZoneSet
+from constrained_diffusion_ros.zones.motion import DEFAULT_SPEED_BOUND, MOVED_PX, MovingZones
 
 DEFAULT_SEEDS = tuple(range(100000, 100025))
+# Where a contact is checked for being unavoidable: the pusher's one-step reach sampled on
+# rings at these fractions of it, in CONTACT_DIRECTIONS directions, and its centre.
+CONTACT_RINGS = (0.25, 0.5, 0.75, 1.0)
+CONTACT_DIRECTIONS = 32
 
 
 @dataclass
@@ -53,32 +61,72 @@ class CellResult:
     interventions: float | None = None
     intervention_px: float | None = None
     standstill_steps: float | None = None
+    # Moving zones (None for static ones): steps whose disc overlaps a zone, per episode;
+    # those counted in all episodes that a setpoint could have avoided and those it could not
+    # (`unavoidable`); the least disc-to-zone gap over the episodes (px, negative: overlap)
+    # and its mean per episode.
+    contact_steps: float | None = None
+    avoidable_contact_steps: int | None = None
+    unavoidable_contact_steps: int | None = None
+    min_separation: float | None = None
+    mean_min_separation: float | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
-def _zones_per_step(scenario: Scenario, n_steps: int) -> list:
-    """The zone set in force at each step (one shared object when the scenario is static)."""
+def _zones_per_step(scenario: Scenario, n_steps: int, offsets: np.ndarray | None = None
+                    ) -> list:
+    """The zone set in force at each step (one shared object when the scenario is static);
+    with `offsets` (E, T, 2), each episode's zones moved by its own (a homing hand)."""
+    if offsets is not None and scenario.area is None:
+        drawn = scenario.zones_at(0)
+        return [Translated(drawn, torch.from_numpy(offsets[:, t])) for t in range(n_steps)]
     return [scenario.zones_at(t) for t in range(n_steps)]
+
+
+def unavoidable(pusher_before: np.ndarray, zones_after: RestrictedArea) -> np.ndarray:
+    """Bool (N,): contacts that no setpoint could have avoided: every point the pusher could
+    reach in one control step from where it was (`RobotModel.reach`, within the workspace,
+    sampled on rings) leaves its disc overlapping the zones after it. Sampled, so it may miss
+    a small free pocket; it looks one step back only, so a contact it calls unavoidable may
+    have been avoidable earlier: the cause it names is the step before."""
+    robot = PUSHT_ROBOT
+    reach = robot.reach(1.0 / robot.control_hz)
+    angles = np.linspace(0, 2 * np.pi, CONTACT_DIRECTIONS, endpoint=False)
+    unit = np.stack([np.cos(angles), np.sin(angles)], axis=-1)
+    offsets = np.concatenate([np.zeros((1, 2))] + [f * reach * unit for f in CONTACT_RINGS])
+    points = pusher_before[:, None] + offsets[None]  # (N, P, 2)
+    x_min, y_min, x_max, y_max = robot.workspace
+    points = np.clip(points, (x_min, y_min), (x_max, y_max))
+    clearance = zones_after.signed_distance(torch.from_numpy(points)).numpy()
+    return (clearance < robot.pusher_radius).all(axis=1)
 
 
 def cell_metrics(log: RolloutLog, rows: np.ndarray, scenario: Scenario) -> dict[str, object]:
     """s, r, r_body, path crossings and liveness of one scenario's episodes in a batched
-    log."""
+    log; for moving zones also contact steps (avoidable or not) and the least separation."""
     commanded, pusher = log.commanded[rows], log.pusher[rows]
     n_steps = commanded.shape[1]
     previous = np.concatenate([pusher[:, :1], commanded[:, :-1]], axis=1)
     inside, body, crossing, near = (np.zeros(commanded.shape[:2], dtype=bool)
                                     for _ in range(4))
-    zones = _zones_per_step(scenario, n_steps)
+    # Where a homing zone went is the rollout's; other zones go where their path says.
+    offsets = log.zone_offsets[rows] if scenario.homes and log.zone_offsets is not None \
+        else None
+    zones = _zones_per_step(scenario, n_steps, offsets)
     steps = [np.arange(n_steps)] if not scenario.moving else [[t] for t in range(n_steps)]
+    gap = np.full(commanded.shape[:2], np.inf)  # disc to zones after each step (px)
     for columns in steps:
         area = zones[columns[0]]
         cmd = torch.from_numpy(commanded[:, columns])
         inside[:, columns] = area.contains(cmd).numpy()
         after = torch.from_numpy(pusher[:, 1:][:, columns])
         clearance = area.signed_distance(after).numpy()
+        if scenario.moving:  # the disc after step t meets the zones as they are at t + 1
+            later = zones[min(columns[0] + 1, n_steps - 1)]
+            clearance = np.minimum(clearance, later.signed_distance(after).numpy())
+        gap[:, columns] = clearance - PUSHT_ROBOT.pusher_radius
         body[:, columns] = clearance < PUSHT_ROBOT.pusher_radius
         near[:, columns] = clearance < PUSHT_ROBOT.pusher_radius + STANDSTILL_NEAR_PX
         start = torch.from_numpy(previous[:, columns])
@@ -95,6 +143,20 @@ def cell_metrics(log: RolloutLog, rows: np.ndarray, scenario: Scenario) -> dict[
         liveness = {"interventions": float(changed.sum(axis=1).mean()),
                     "intervention_px": float(change[changed].mean()) if changed.any() else 0.0,
                     "standstill_steps": float(standstills(moved, near).sum(axis=1).mean())}
+    motion = {}
+    if scenario.moving:
+        forced = np.zeros_like(body)
+        for episode, step in zip(*np.nonzero(body)):
+            later = zones[min(step + 1, n_steps - 1)]
+            forced[episode, step] = unavoidable(
+                pusher[episode:episode + 1, step],
+                later.select_rows(torch.tensor([episode])))[0]
+        least = gap.min(axis=1)
+        motion = {"contact_steps": float(body.sum(axis=1).mean()),
+                  "avoidable_contact_steps": int((body & ~forced).sum()),
+                  "unavoidable_contact_steps": int(forced.sum()),
+                  "min_separation": float(least.min()),
+                  "mean_min_separation": float(least.mean())}
     return {
         "s": float(best.mean()),
         "final_score": float(log.final_score[rows].mean()),
@@ -110,19 +172,68 @@ def cell_metrics(log: RolloutLog, rows: np.ndarray, scenario: Scenario) -> dict[
         "r_ci": list(bootstrap_mean(per_episode_r)),
         "success_ci": list(wilson(int(successes.sum()), len(successes))),
         **liveness,
+        **motion,
     }
 
 
 class ScenarioZones:
     """The zone source of a batched evaluation: row b sees the zones of scenario
-    `scenario_of_row[b]`, which change every step while that scenario moves."""
+    `scenario_of_row[b]`, which change every step while that scenario moves (a homing one
+    differently in each row: `follow` tells it the pushers). Moving zones come as
+    `MovingZones`, each assumed able to move at `speed_bound` once it has moved (as a node
+    assumes of live zones, `zones.motion`); `offsets` keeps where each row's zones were."""
 
-    def __init__(self, scenarios: Sequence[Scenario], scenario_of_row: np.ndarray) -> None:
+    def __init__(self, scenarios: Sequence[Scenario], scenario_of_row: np.ndarray,
+                 speed_bound: float = DEFAULT_SPEED_BOUND) -> None:
         self.scenarios, self.scenario_of_row = list(scenarios), scenario_of_row
+        self.speed_bound = speed_bound
         self.moving = np.array([scenarios[i].moving for i in scenario_of_row])
+        self.rows = [np.flatnonzero(scenario_of_row == i) for i in range(len(scenarios))]
+        self.movers = {i: ZoneMover(s.motion, s.centroid, len(self.rows[i]))
+                       for i, s in enumerate(self.scenarios) if s.moving and s.area is None}
+        self.offsets: dict[int, np.ndarray] = {}  # step -> (B, 2) each row's zones moved by
+        self.moved = np.zeros(len(scenario_of_row), dtype=bool)  # seen moving so far
+        self.pusher: np.ndarray | None = None
 
-    def area_at(self, step: int) -> EpisodeZones:
-        return EpisodeZones([s.zones_at(step) for s in self.scenarios], self.scenario_of_row)
+    def follow(self, step: int, pusher: np.ndarray) -> None:
+        """The pushers (B, 2) at control step `step`, before it is planned: where homing
+        zones head."""
+        self.pusher = np.asarray(pusher, dtype=float)
+        self.offsets_at(step)
+
+    def offsets_at(self, step: int) -> np.ndarray:
+        """(B, 2) px each row's zones are moved by at `step` (steps in order)."""
+        if step not in self.offsets:
+            offsets = np.zeros((len(self.scenario_of_row), 2))
+            for index, mover in self.movers.items():
+                rows = self.rows[index]
+                offsets[rows] = mover.at(step, None if self.pusher is None
+                                         else self.pusher[rows])
+            if step - 1 in self.offsets:
+                shift = np.linalg.norm(offsets - self.offsets[step - 1], axis=-1)
+                self.moved |= shift > MOVED_PX
+            elif step == 0:
+                self.moved[:] = False
+            self.offsets[step] = offsets
+        return self.offsets[step]
+
+    def area_at(self, step: int) -> RestrictedArea:
+        if not self.movers:
+            return EpisodeZones([s.zones_at(step) for s in self.scenarios], self.scenario_of_row)
+        offsets = torch.from_numpy(self.offsets_at(step))
+        areas, moving = [], []
+        for index, scenario in enumerate(self.scenarios):
+            if index in self.movers:
+                drawn = scenario.zones_at(0)
+                areas.append(Translated(drawn, offsets[self.rows[index]]))
+                moving.append(areas[-1])
+            else:
+                areas.append(scenario.zones_at(step))
+                moving.append(ZoneSet.empty())
+        speed = torch.from_numpy(np.where(self.moved, self.speed_bound, 0.0))
+        return MovingZones(EpisodeZones(areas, self.scenario_of_row),
+                           EpisodeZones(moving, self.scenario_of_row), speed, 0.0,
+                           PUSHT_ROBOT.reaction_s)
 
     def version_at(self, step: int) -> np.ndarray:
         return np.where(self.moving, step, 0)
@@ -149,7 +260,10 @@ def _layout(configs: Sequence[ConstraintConfig], scenario_lists: Sequence[Sequen
     blocks: list[Block] = []
     for index, (config, chosen) in enumerate(zip(configs, scenario_lists, strict=True)):
         indices = [scenarios.index(s) for s in chosen]
-        groups = [tuple(indices)] if not config.constrains else [(i,) for i in indices]
+        # A zone that homes on the pusher goes where that block's pushers go: its own block.
+        shared = tuple(i for i in indices if not scenarios[i].homes)
+        groups = ([shared] if shared else []) + [(i,) for i in indices if scenarios[i].homes] \
+            if not config.constrains else [(i,) for i in indices]
         for group in groups:
             start = blocks[-1].stop if blocks else 0
             blocks.append(Block(index, group, start, start + n_seeds))

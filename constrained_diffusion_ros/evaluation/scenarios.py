@@ -10,12 +10,14 @@ its polygons (for drawing and for the zone topic) are those it offers as `polygo
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cache
 from pathlib import Path
 
 import numpy as np
+import shapely
 
+from constrained_diffusion_ros.evaluation.zone_paths import ZonePath
 from constrained_diffusion_ros.paths import config_dir
 from constrained_diffusion_ros.planning.config import read_yaml
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
@@ -115,23 +117,34 @@ class Scenario:
     label: str
     polygons: tuple[np.ndarray, ...]  # what is drawn and published; the zones unless `area`
     paper: bool = False
-    motion_offset: tuple[float, float] | None = None  # total translation (px)
-    motion_steps: int = 1
+    motion: ZonePath | None = None  # how the zones move (None: they stand still)
     area: RestrictedArea | None = None  # a plug-in area (static), answering for the zones
     plugin: dict | None = None  # its spec {class, parameters}, for a node to load it too
 
     @property
     def moving(self) -> bool:
-        return self.motion_offset is not None
+        return self.motion is not None
+
+    @property
+    def homes(self) -> bool:
+        """Its zones head for the pusher: where they are depends on the episode."""
+        return self.motion is not None and self.motion.homes
+
+    @property
+    def centroid(self) -> np.ndarray:
+        """(2,) the drawn zones' centroid: what a homing zone steers toward the pusher."""
+        return shapely.get_coordinates(_zone_set(self, 0).geometry.centroid)[0]
 
     def offset_at(self, step: int) -> np.ndarray:
+        """(2,) px the zones are moved by at a control step (a homing one: along its path,
+        without the homing, which `ZoneMover` adds per episode)."""
         if not self.moving:
             return np.zeros(2)
-        return np.asarray(self.motion_offset) * min(1.0, step / self.motion_steps)
+        return self.motion.offset_at(step / PUSHT_ROBOT.control_hz)
 
-    def polygons_at(self, step: int) -> list[np.ndarray]:
-        """The zones in force at a control step."""
-        offset = self.offset_at(step)
+    def polygons_at(self, step: int, offset: np.ndarray | None = None) -> list[np.ndarray]:
+        """The zones in force at a control step (moved by `offset` instead, if given)."""
+        offset = self.offset_at(step) if offset is None else offset
         return [p + offset for p in self.polygons]
 
     def zones_at(self, step: int) -> RestrictedArea:
@@ -179,10 +192,20 @@ def load_scenarios(path: str | Path | None = None) -> dict[str, Scenario]:
             polygons = _zone_polygons(zones, where, path.parent, scenarios)
         else:
             raise ValueError(f"{where} has no zones")
-        scenarios[name] = Scenario(
+        try:
+            speeds = [float(v) for v in (motion or {}).get("speeds", [])]
+            zone_path = ZonePath.from_spec(motion) if motion and not speeds else None
+            variants = [ZonePath.from_spec(motion, speed) for speed in speeds]
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"{where} motion: {error}") from None
+        scenario = Scenario(
             name=name, label=str(entry.get("label", name)), polygons=polygons,
-            paper=bool(entry.get("paper", False)),
-            motion_offset=tuple(map(float, motion["offset"])) if motion else None,
-            motion_steps=int(motion["steps"]) if motion else 1, area=area,
+            paper=bool(entry.get("paper", False)), motion=zone_path, area=area,
             plugin=dict(plugin) if plugin else None)
+        if not variants:
+            scenarios[name] = scenario
+        for speed, variant in zip(speeds, variants):  # name@speed, one per speed
+            scenarios[f"{name}@{speed:g}"] = replace(
+                scenario, name=f"{name}@{speed:g}", label=f"{scenario.label}, {speed:g} px/s",
+                motion=variant)
     return scenarios

@@ -53,6 +53,14 @@ class RobotModel:
         """Physics steps per control step."""
         return round(self.physics_hz / self.control_hz)
 
+    @property
+    def reaction_s(self) -> float:
+        """s a moving zone has to come closer before this robot has got out of its way: the
+        setpoint in force runs until the next control step, a step longer if the next one
+        reaches the robot late (the shield's `late`), and the PD law then trails a setpoint
+        that retreats at constant speed by kv / kp seconds of its travel."""
+        return 2.0 / self.control_hz + self.kv / self.kp
+
     def outside(self, points: np.ndarray) -> np.ndarray:
         """Bool (...): the point (..., 2) lies outside the workspace (NaN: no point, False)."""
         x_min, y_min, x_max, y_max = self.workspace

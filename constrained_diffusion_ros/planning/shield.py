@@ -28,6 +28,9 @@ of safe reinforcement learning).
 
 from __future__ import annotations
 
+import math
+from typing import NamedTuple
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -35,6 +38,7 @@ from torch import Tensor
 from constrained_diffusion_ros.planning.robot import RobotModel
 from constrained_diffusion_ros.zones.area import RestrictedArea
 from constrained_diffusion_ros.zones.geometry import BUFFER_SAG
+from constrained_diffusion_ros.zones.motion import MovingZones
 
 # Fractions of the way from the last accepted setpoint to the planned one, tried largest first.
 FRACTIONS = (0.75, 0.5, 0.25, 0.0)  # after the whole way (1.0) was refused
@@ -59,6 +63,19 @@ BRAKE_S = (0.0, 0.1, 0.2)
 CHUNK = 16  # candidates checked at once, best first, until one is safe
 SPARSE = 6  # a quick refusal first looks at every SPARSE-th substep of a path
 FEW = 2  # candidates that passed it, checked whole at once, in order
+# Retreats from a moving zone: points around the pusher at these multiples of the zone's reach
+# (speed x (age + reaction)), in DIRECTIONS directions, plus RETREAT_PX.
+RETREAT_REACHES = (0.5, 1.0, 1.5, 2.0)
+RETREAT_PX = 10.0
+
+
+class Path(NamedTuple):
+    """Points of a path checked against the zones: (H, 3) coefficients of (start position,
+    start velocity, setpoint) per axis, and (H,) their times (s) from the start (inf: at
+    rest, however long it takes)."""
+
+    coefficients: Tensor
+    seconds: Tensor
 
 
 class PusherShield:
@@ -75,12 +92,17 @@ class PusherShield:
         # Position after each substep, then at rest (the setpoint itself): the horizon may end
         # before a pusher far away gets there, and a setpoint is held until the next one.
         at_rest = np.array([[0.0, 0.0, 1.0]])
-        self.path = torch.from_numpy(np.concatenate([coefficients[:horizon, 0], at_rest]))
-        self.sparse_path = torch.cat([self.path[SPARSE - 1:-1:SPARSE], self.path[-1:]])
+        path = torch.from_numpy(np.concatenate([coefficients[:horizon, 0], at_rest]))
+        seconds = torch.cat([torch.arange(1, horizon + 1, dtype=torch.float64)
+                             / robot.physics_hz, torch.tensor([math.inf])])
+        self.path = Path(path, seconds)
+        self.sparse_path = Path(torch.cat([path[SPARSE - 1:-1:SPARSE], path[-1:]]),
+                                torch.cat([seconds[SPARSE - 1:-1:SPARSE], seconds[-1:]]))
+        self.tick_s = 1.0 / robot.control_hz  # a late path starts a control step later
         # (2, 3) n control steps, n = 1 .. MAX_GAP_STEPS: entry n - 1
         self.control_steps = coefficients[robot.substeps - 1::robot.substeps][:MAX_GAP_STEPS]
         self.fractions = torch.tensor(FRACTIONS, dtype=torch.float64)
-        self.reach = (self.path[:, 2].abs().max(), self.path[:, 1].abs().max())
+        self.reach = (path[:, 2].abs().max(), path[:, 1].abs().max())
         self.margin, self.escape, self.slide = margin, escape, slide
         # The inflated area's arcs are chords, up to radius * BUFFER_SAG inside the true disc's
         # reach: the check asks that much more, so the margin holds against the true zone.
@@ -97,6 +119,10 @@ class PusherShield:
         self.last: tuple[int, np.ndarray, list[np.ndarray], np.ndarray] | None = None
         self.in_force: np.ndarray | None = None  # the setpoint in force at that observation
         self.corrected = 0  # setpoints changed since the reset
+        # Rows of the last call that a moving zone left no safe setpoint (no free space to
+        # retreat into): the one kept farthest from the zones was taken instead.
+        self.cornered = np.zeros(0, dtype=bool)
+        self.cornered_steps = 0  # row-calls cornered since the reset
 
     def estimate(self, position: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray]:
         """(velocity (B, 2), setpoints that may be in force (K, B, 2), newest last) at the
@@ -143,18 +169,22 @@ class PusherShield:
         unchanged, but the history is kept."""
         position, setpoint = np.asarray(position, float), np.asarray(setpoint, float)
         velocity, held = self.estimate(position, step)
+        self.cornered = np.zeros(len(position), dtype=bool)
         if area is None:
             self._remember(step, position, setpoint, velocity, held[-1])
             return setpoint
         p, v = torch.from_numpy(position), torch.from_numpy(velocity)
         # (B, K, 2) the setpoints that may be in force, newest last
         start, goal = torch.from_numpy(held).transpose(0, 1), torch.from_numpy(setpoint)
-        near = torch.nonzero(area.signed_distance(p.float())
+        # (a moving zone: as far as it may come)
+        near = torch.nonzero(area.signed_distance_after(p.float(), math.inf)
                              < self._reach(p, v, start, goal) + self.clearance).flatten()
         chosen = goal.clone()
         if len(near):
-            chosen[near] = self._choose(area.select_rows(near), p[near], v[near], start[near],
-                                        goal[near])
+            chosen[near], cornered = self._choose(area.select_rows(near), p[near], v[near],
+                                                  start[near], goal[near])
+            self.cornered[near.numpy()] = cornered.numpy()
+            self.cornered_steps += int(cornered.sum())
         result = chosen.numpy()
         self.corrected += int((chosen != goal).any(dim=-1).sum())
         self._remember(step, position, result, velocity, held[-1])
@@ -192,36 +222,50 @@ class PusherShield:
             self.last, self.in_force = (step, position, [setpoint], velocity), held
 
     def _safe(self, area: RestrictedArea, p: Tensor, v: Tensor, candidates: Tensor,
-              held: Tensor | None = None, path: Tensor | None = None) -> Tensor:
+              held: Tensor | None = None, path: Path | None = None) -> Tensor:
         """(N, F) whether holding candidate (N, F, 2) keeps a pusher at p moving at v clear of
         the area: after every physics substep of the horizon, and at the candidate itself
         (or at the points of `path`, a subset of them: a quick test that can only refuse).
         With `held` (N, K, 2) (or (N, 2)), the setpoints that may be in force, and `late`,
         also if the candidate takes over one control step later (it reached the robot after
-        its tick), after a step of each of them."""
-        a, b, c = (self.path if path is None else path).unbind(-1)
+        its tick), after a step of each of them. A moving zone is checked as it may be when
+        the pusher gets to each point (`RestrictedArea.signed_distance_after`)."""
+        return self._margin(area, p, v, candidates, held, path) >= 0
+
+    def _margin(self, area: RestrictedArea, p: Tensor, v: Tensor, candidates: Tensor,
+                held: Tensor | None = None, path: Path | None = None) -> Tensor:
+        """(N, F) the least clearance beyond the required one along each candidate's paths
+        (`_safe`): negative where it is not safe."""
+        coefficients, seconds = self.path if path is None else path
+        a, b, c = coefficients.unbind(-1)
+        starts = [0.0]
         if held is not None and self.one_step is not None:
             late_p, late_v = self._step_late(p, v, held[:, None] if held.dim() == 2 else held)
             p, v = (torch.cat([p[:, None], late_p], dim=1),
                     torch.cat([v[:, None], late_v], dim=1))  # (N, 1 + K starts, 2)
+            starts += [self.tick_s] * late_p.shape[1]
         else:
             p, v = p[:, None], v[:, None]
         paths = (a[:, None] * p[:, None, :, None] + b[:, None] * v[:, None, :, None]
                  + c[:, None] * candidates[:, :, None, None])  # (N, F, starts, H, 2)
-        paths = paths.flatten(2, 3)
-        count, n_candidates, horizon, _ = paths.shape
+        count, n_candidates = paths.shape[:2]
         paths = paths.reshape(count, -1, 2).float()
-        clearance = area.near(paths, self.clearance).signed_distance(paths)
-        return (clearance.reshape(count, n_candidates, horizon) >= self.clearance).all(dim=-1)
+        # (1, F * starts * H): when the pusher is at each point, from now
+        when = (torch.tensor(starts, dtype=torch.float64)[:, None] + seconds[None])
+        when = when.expand(n_candidates, *when.shape).reshape(1, -1)
+        clearance = area.near(paths, self.clearance).signed_distance_after(paths, when)
+        return clearance.reshape(count, n_candidates, -1).amin(dim=-1) - self.clearance
 
     def _choose(self, area: RestrictedArea, p: Tensor, v: Tensor, held: Tensor,
-                goal: Tensor) -> Tensor:
+                goal: Tensor) -> tuple[Tensor, Tensor]:
         """A safe setpoint near `goal` for pushers at p moving at v, one of `held` (N, K, 2)
-        in force, the newest last."""
+        in force, the newest last; and (N,) the rows a moving zone left none safe
+        (cornered)."""
         chosen = goal.clone()
+        cornered = torch.zeros(len(goal), dtype=torch.bool)
         blocked = torch.nonzero(~self._safe(area, p, v, goal[:, None], held)[:, 0]).flatten()
         if len(blocked) == 0:
-            return chosen
+            return chosen, cornered
         area, p, v = area.select_rows(blocked), p[blocked], v[blocked]
         held, goal = held[blocked], goal[blocked]
         start = held[:, -1]
@@ -231,7 +275,8 @@ class PusherShield:
             step = (goal - start).norm(dim=-1).clamp_min(1.0)
             around = goal[:, None] + step[:, None, None] * self.ring[None]
             out = area.project_out(goal.float(), 2 * self.margin).double()[:, None]
-            candidates = torch.cat([candidates, out, around, self._brakes(p, v, start)], dim=1)
+            candidates = torch.cat([candidates, out, around, self._brakes(p, v, start),
+                                    *self._retreats(area, p, goal)], dim=1)
             distance = (candidates - goal[:, None]).norm(dim=-1)
             order = distance.argsort(dim=1, stable=True)
             pick = self._first_safe(area, p, v, held, candidates, order)
@@ -254,12 +299,36 @@ class PusherShield:
             stuck = ~safe.any(dim=1)
             fallback = candidates[rows, safe.float().argmax(dim=1)]
         # No safe candidate (it started inside, or a zone moved onto it): head for the nearest
-        # point `escape` px clear, so a zone still coming does not catch it at once.
+        # point `escape` px clear, so a zone still coming does not catch it at once. Cornered
+        # by a moving zone (no free space to retreat into): the candidate whose paths keep
+        # farthest from what the zones may reach, the separation as large as it can be.
         if stuck.any():  # the area may be batch-aware (row b, zones b): query every row
             escape = area.project_out(p.float(), self.escape).double()
             fallback = torch.where(stuck[:, None], escape, fallback)
+            if isinstance(area, MovingZones):
+                trapped = torch.nonzero(stuck & (area.reach() > 0)).flatten()
+                if len(trapped):
+                    candidates = torch.cat([candidates, escape[:, None]], dim=1)[trapped]
+                    margin = self._margin(area.select_rows(trapped), p[trapped], v[trapped],
+                                          candidates)
+                    fallback[trapped] = candidates[torch.arange(len(trapped)),
+                                                   margin.argmax(dim=1)]
+                    cornered[blocked[trapped]] = True
         chosen[blocked] = fallback
-        return chosen
+        return chosen, cornered
+
+    def _retreats(self, area: RestrictedArea, p: Tensor, goal: Tensor) -> list[Tensor]:
+        """[(N, R, 2)] points to retreat to from moving zones, around the pusher at multiples
+        of how far they may come (`MovingZones.reach`); none for zones that stand still. A
+        row whose zones stand still gets copies of its goal (refused already)."""
+        if not isinstance(area, MovingZones):
+            return []
+        reach = area.reach().expand(len(p)).double()  # (N,)
+        radii = reach[:, None] * torch.tensor(RETREAT_REACHES, dtype=torch.float64) + RETREAT_PX
+        unit = self.ring[-DIRECTIONS:]  # the ring's outer circle: unit directions
+        points = p[:, None, None] + radii[:, :, None, None] * unit[None, None]
+        points = points.reshape(len(p), -1, 2)
+        return [torch.where((reach > 0)[:, None, None], points, goal[:, None])]
 
     def _brakes(self, p: Tensor, v: Tensor, start: Tensor) -> Tensor:
         """(N, 2 len(BRAKE_S), 2) braking setpoints, from the state now and from the state a

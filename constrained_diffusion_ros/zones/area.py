@@ -45,6 +45,12 @@ class RestrictedArea(ABC):
         """Bool (...): the point lies inside the area."""
         return self.signed_distance(points) < 0
 
+    def signed_distance_after(self, points: Tensor, seconds: Tensor | float) -> Tensor:
+        """(...): the signed distance, `seconds` (broadcast against points[..., 0]) from now,
+        to everything the area may cover by then: a zone that moves may cover more than it
+        does now (`zones.motion.MovingZones`); an area that stands still, itself."""
+        return self.signed_distance(points)
+
     def outward_direction(self, points: Tensor) -> Tensor:
         """(..., 2) unit vectors out by the nearest boundary (outside points: away from it);
         by default the normalised gradient of the signed distance (central differences)."""
@@ -79,15 +85,23 @@ class RestrictedArea(ABC):
         p = self._step_out(start, clearance)
         hard = self._distance64(p) < clearance
         if hard.any():
-            stepped = p[hard]
+            # Whole rows of the batch (a batch-aware area answers row by row), the rows
+            # where a point is hard; of those, only the hard points change.
+            if p.dim() >= 2:
+                rows = torch.nonzero(hard.reshape(len(hard), -1).any(dim=1)).flatten()
+                area = self.select_rows(rows)
+            else:
+                rows, area = slice(None), self
+            stepped, begun, row_hard = p[rows], start[rows], hard[rows]
             for _ in range(PROJECTION_PASSES - 1):
-                stepped = self._step_out(stepped, clearance)
-            candidates = torch.stack([stepped, self._nearest_clear_on_rays(start[hard],
-                                                                           clearance)])
-            clear = self._distance64(candidates) >= margin
-            cost = torch.where(clear, (candidates - start[hard]).norm(dim=-1), torch.inf)
+                stepped = area._step_out(stepped, clearance)
+            candidates = (stepped, area._nearest_clear_on_rays(begun, clearance))
+            cost = torch.stack([torch.where(area._distance64(c) >= margin,
+                                            (c - begun).norm(dim=-1), torch.inf)
+                                for c in candidates])
+            best = torch.where((cost[0] <= cost[1])[..., None], *candidates)
             p = p.clone()
-            p[hard] = candidates[cost.argmin(dim=0), torch.arange(len(stepped))]
+            p[rows] = torch.where(row_hard[..., None], best, p[rows])
         return p.to(dtype)
 
     def _step_out(self, p: Tensor, clearance: float) -> Tensor:
@@ -99,24 +113,24 @@ class RestrictedArea(ABC):
         return self.signed_distance(points).to(torch.float64)
 
     def _nearest_clear_on_rays(self, points: Tensor, clearance: float) -> Tensor:
-        """(N, 2) -> the nearest point with the clearance along RAYS directions from each; a
+        """(..., 2) -> the nearest point with the clearance along RAYS directions from each; a
         point with no clear ray is kept. Steps of (clearance - distance) never pass the first
         clear point of a ray, since a distance changes by at most the length moved."""
         angles = torch.arange(RAYS, dtype=torch.float64) * (2 * math.pi / RAYS)
         rays = torch.stack([angles.cos(), angles.sin()], dim=-1)  # (K, 2)
-        t = torch.zeros(len(points), RAYS, dtype=torch.float64)
+        t = torch.zeros(*points.shape[:-1], RAYS, dtype=torch.float64)
         found = torch.zeros_like(t, dtype=torch.bool)
         for _ in range(RAY_STEPS):
-            gap = clearance - self._distance64(points[:, None] + t[..., None] * rays)
+            gap = clearance - self._distance64(points[..., None, :] + t[..., None] * rays)
             found |= gap <= 0
-            best = torch.where(found, t, torch.inf).amin(dim=1, keepdim=True)
+            best = torch.where(found, t, torch.inf).amin(dim=-1, keepdim=True)
             active = ~found & (t < best) & (t < 1e6)  # a ray that could still be nearer
             if not active.any():
                 break
             t = torch.where(active, t + gap.clamp_min(1e-3), t)
-        nearest = torch.where(found, t, torch.inf).min(dim=1)
-        moved = points + nearest.values[:, None] * rays[nearest.indices]
-        return torch.where(found.any(dim=1)[:, None], moved, points)
+        nearest = torch.where(found, t, torch.inf).min(dim=-1)
+        moved = points + nearest.values[..., None] * rays[nearest.indices]
+        return torch.where(found.any(dim=-1)[..., None], moved, points)
 
     def segment_clear_fraction(self, starts: Tensor, ends: Tensor) -> Tensor:
         """(...): fraction t in [0, 1] of each segment travelled before it first enters the
@@ -208,6 +222,9 @@ class Inflated(RestrictedArea):
     def signed_distance(self, points: Tensor) -> Tensor:
         return self.area.signed_distance(points) - self.radius
 
+    def signed_distance_after(self, points: Tensor, seconds: Tensor | float) -> Tensor:
+        return self.area.signed_distance_after(points, seconds) - self.radius
+
     def outward_direction(self, points: Tensor) -> Tensor:
         return self.area.outward_direction(points)
 
@@ -224,6 +241,50 @@ class Inflated(RestrictedArea):
 
     def _inflated(self, radius: float) -> RestrictedArea:
         return self.area.inflate(self.radius + radius)
+
+
+class Translated(RestrictedArea):
+    """An area moved by `offset`: (2,) for every row, or (B, 2), one per row of a batch (a
+    hand's zone at a different place in each episode). Queries shift the points back, so the
+    area's exact geometry (and its caches) serve every offset."""
+
+    def __init__(self, area: RestrictedArea, offset: Tensor) -> None:
+        self.area = area
+        self.offset = torch.as_tensor(offset, dtype=torch.float64)
+
+    def _shift(self, points: Tensor) -> Tensor:
+        points = torch.as_tensor(points)
+        offset = self.offset.to(_float_dtype(points))
+        if offset.dim() == 2:  # per row: (B, 2) against (B, ..., 2)
+            offset = offset.reshape(len(offset), *([1] * (points.dim() - 2)), 2)
+        return offset
+
+    def signed_distance(self, points: Tensor) -> Tensor:
+        return self.area.signed_distance(points - self._shift(points))
+
+    def contains(self, points: Tensor) -> Tensor:
+        return self.area.contains(points - self._shift(points))
+
+    def outward_direction(self, points: Tensor) -> Tensor:
+        return self.area.outward_direction(points - self._shift(points))
+
+    def project_out(self, points: Tensor, margin: float = 0.0) -> Tensor:
+        shift = self._shift(points)
+        return self.area.project_out(points - shift, margin) + shift
+
+    def segment_clear_fraction(self, starts: Tensor, ends: Tensor) -> Tensor:
+        shift = self._shift(starts)
+        return self.area.segment_clear_fraction(starts - shift, ends - shift)
+
+    def select_rows(self, rows: Tensor) -> RestrictedArea:
+        offset = self.offset[rows] if self.offset.dim() == 2 else self.offset
+        return Translated(self.area.select_rows(rows), offset)
+
+    def near(self, points: Tensor, reach: float) -> RestrictedArea:
+        return Translated(self.area.near(points - self._shift(points), reach), self.offset)
+
+    def _inflated(self, radius: float) -> RestrictedArea:
+        return Translated(self.area.inflate(radius), self.offset)
 
 
 class OutsideBox(RestrictedArea):
@@ -255,6 +316,10 @@ class AreaUnion(RestrictedArea):
 
     def signed_distance(self, points: Tensor) -> Tensor:
         return torch.stack([part.signed_distance(points) for part in self.parts]).amin(dim=0)
+
+    def signed_distance_after(self, points: Tensor, seconds: Tensor | float) -> Tensor:
+        return torch.stack([part.signed_distance_after(points, seconds)
+                            for part in self.parts]).amin(dim=0)
 
     def outward_direction(self, points: Tensor) -> Tensor:
         distances = torch.stack([part.signed_distance(points) for part in self.parts])

@@ -51,6 +51,10 @@ class EpisodeZones(RestrictedArea):
     def signed_distance(self, points: Tensor) -> Tensor:
         return self._gather(lambda a, p: a.signed_distance(p), points)
 
+    def signed_distance_after(self, points: Tensor, seconds: Tensor | float) -> Tensor:
+        # `seconds` is the same for every row (no batch dimension of its own)
+        return self._gather(lambda a, p: a.signed_distance_after(p, seconds), points)
+
     def outward_direction(self, points: Tensor) -> Tensor:
         return self._gather(lambda a, p: a.outward_direction(p), points)
 
@@ -64,7 +68,18 @@ class EpisodeZones(RestrictedArea):
         return self._gather(lambda a, s, e: a.crosses(s, e), starts, ends)
 
     def select_rows(self, rows: Tensor) -> EpisodeZones:
-        return EpisodeZones(self.areas, self.assignment[rows])
+        """The episodes `rows`; an area that is batch-aware itself (a zone moved differently
+        in each of its episodes) keeps the rows it answers for, in order."""
+        rows = torch.as_tensor(rows)
+        if rows.dtype == torch.bool:
+            rows = torch.nonzero(rows).flatten()
+        assignment = self.assignment[rows]
+        rank = torch.empty_like(self.assignment)  # each episode's place among its area's
+        for own in self._rows:
+            rank[own] = torch.arange(len(own))
+        areas = [area.select_rows(rank[rows[assignment == i]]) if (assignment == i).any()
+                 else area for i, area in enumerate(self.areas)]
+        return EpisodeZones(areas, assignment)
 
     def _inflated(self, radius: float) -> EpisodeZones:
         return EpisodeZones([a.inflate(radius) for a in self.areas], self.assignment)

@@ -1,13 +1,15 @@
-"""How zones move: a velocity per zone id from its successive stamped updates, and the speed a
-guarantee must assume where none is measured.
+"""How zones move: a velocity per zone id from its successive stamped updates, the speed a
+guarantee assumes of each, and the area a shield checks against (`MovingZones`).
 
 A moving zone is the same id republished with a new stamp (a hand a camera tracks). Its
 velocity is the displacement of its centroid between two updates over the time between their
 stamps, smoothed over the updates before; after a gap longer than `max_gap_s` it is measured
-afresh. A zone with fewer than `min_updates` updates behind its estimate is assumed to move at
-`speed_bound`, as ISO 13855 assumes an approach speed where none is measured. A tracked zone
-faster than the bound breaks the assumption a separation built on the bound rests on:
-`over_bound` names it, so it is said, not trusted.
+afresh. What a guarantee assumes (`assumed_speed`): a zone that no update has shown moving
+stands still (a zone published once, or republished in place: the static guarantee); one seen
+moving may move at up to `speed_bound` in any direction from then on, whatever its measured
+speed, as ISO 13855 assumes an approach speed rather than trusting a person to keep to one. A
+zone measured faster than the bound breaks that assumption: `over_bound` names it, so it is
+said, not trusted.
 """
 
 from __future__ import annotations
@@ -15,7 +17,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 from numpy.typing import ArrayLike
+from torch import Tensor
+
+from constrained_diffusion_ros.zones.area import Bounds, RestrictedArea
 
 # px/s: the speed assumed of a zone whose own is not measured, and the bound a measured one is
 # held to. 300 px/s covers the hands the package is checked against (50 to 300 px/s: at 100 px/s
@@ -24,6 +30,7 @@ DEFAULT_SPEED_BOUND = 300.0
 MIN_UPDATES = 3  # updates (two displacements) before a zone's own speed is trusted
 MAX_GAP_S = 1.0  # a longer pause between updates starts the estimate afresh
 SMOOTHING = 0.5  # weight of the newest displacement in the velocity
+MOVED_PX = 0.5  # a centroid displaced more between two updates: the zone moves
 
 
 @dataclass
@@ -34,6 +41,7 @@ class Track:
     centroid: np.ndarray  # (2,) px
     velocity: np.ndarray  # (2,) px/s; zero until two updates
     updates: int  # updates since the estimate (re)started
+    moved: bool = False  # an update has shown it displaced (it may move again at any time)
 
 
 class ZoneMotion:
@@ -54,13 +62,16 @@ class ZoneMotion:
         track = self.tracks.get(zone_id)
         if track is not None and stamp <= track.stamp:
             return
+        displaced = track is not None and \
+            float(np.linalg.norm(centroid - track.centroid)) > MOVED_PX
+        moved = track is not None and (track.moved or displaced)
         if track is None or stamp - track.stamp > self.max_gap_s:
-            self.tracks[zone_id] = Track(stamp, centroid, np.zeros(2), 1)
+            self.tracks[zone_id] = Track(stamp, centroid, np.zeros(2), 1, moved)
             return
         velocity = (centroid - track.centroid) / (stamp - track.stamp)
         if track.updates > 1:
             velocity = SMOOTHING * velocity + (1 - SMOOTHING) * track.velocity
-        self.tracks[zone_id] = Track(stamp, centroid, velocity, track.updates + 1)
+        self.tracks[zone_id] = Track(stamp, centroid, velocity, track.updates + 1, moved)
 
     def forget(self, zone_id: object) -> None:
         self.tracks.pop(zone_id, None)
@@ -78,12 +89,94 @@ class ZoneMotion:
         return self.tracks[zone_id].velocity.copy() if self.measured(zone_id) else np.zeros(2)
 
     def speed(self, zone_id: object) -> float:
-        """px/s to assume of the zone: its measured speed, else the bound."""
-        if self.measured(zone_id):
-            return float(np.linalg.norm(self.tracks[zone_id].velocity))
-        return self.speed_bound
+        """px/s: the zone's measured speed, 0 where none is measured yet."""
+        return float(np.linalg.norm(self.velocity(zone_id)))
+
+    def moving(self, zone_id: object) -> bool:
+        """Whether an update has shown the zone displaced: it is taken to move from then on."""
+        track = self.tracks.get(zone_id)
+        return track is not None and track.moved
+
+    def assumed_speed(self, zone_id: object) -> float:
+        """px/s a guarantee assumes of the zone: the bound once it has been seen moving, else
+        0 (it stands still)."""
+        return self.speed_bound if self.moving(zone_id) else 0.0
 
     def over_bound(self) -> list[object]:
         """Ids of the zones measured faster than the bound."""
         return [zone_id for zone_id in self.tracks
                 if self.measured(zone_id) and self.speed(zone_id) > self.speed_bound]
+
+
+class MovingZones(RestrictedArea):
+    """Zones where they were last seen, some of which move: what a shield checks a path
+    against (`signed_distance_after`); every other query answers for the zones as they are.
+
+    `area` is every zone (batch-aware or one for every row); `moving` the part of it that
+    moves. A moving zone may cover, `t` s from now, any point within
+    `speed * (age_s + min(t, reaction_s))` of where it was seen: `speed` (px/s, one or (B,)
+    per row) the speed assumed of it, `age_s` (s, one or (B,)) since it was where it was seen,
+    `reaction_s` the time the robot needs to react (the setpoint in force until the next one
+    takes over, and the PD law's lag behind a setpoint that retreats). Past `reaction_s` the
+    zone is taken no farther: a path is checked against what the zone can reach before the
+    robot has reacted, its separation speed x (age + reaction), as ISO/TS 15066 sizes a
+    protective separation distance; the shield checks again at every tick.
+    """
+
+    def __init__(self, area: RestrictedArea, moving: RestrictedArea, speed: Tensor | float,
+                 age_s: Tensor | float, reaction_s: float) -> None:
+        self.area, self.moving, self.reaction_s = area, moving, float(reaction_s)
+        self.speed = torch.as_tensor(speed, dtype=torch.float64)
+        self.age_s = torch.as_tensor(age_s, dtype=torch.float64)
+
+    def reach(self, seconds: Tensor | float = float("inf")) -> Tensor:
+        """px (one, or (B,) per row): how far past where they were seen the moving zones may
+        be `seconds` from now."""
+        seconds = torch.as_tensor(seconds, dtype=torch.float64).clamp_max(self.reaction_s)
+        return self.speed * (self.age_s + seconds)
+
+    def signed_distance(self, points: Tensor) -> Tensor:
+        return self.area.signed_distance(points)
+
+    def signed_distance_after(self, points: Tensor, seconds: Tensor | float) -> Tensor:
+        now = self.area.signed_distance(points)
+        seconds = torch.as_tensor(seconds, dtype=torch.float64).clamp_max(self.reaction_s)
+        speed, age = self.speed, self.age_s
+        if speed.dim() == 1:  # per row: (B,) against (B, ...)
+            shape = (len(speed), *([1] * (now.dim() - 1)))
+            speed = speed.reshape(shape)
+            age = age.reshape(shape) if age.dim() == 1 else age
+        grown = (speed * (age + seconds)).to(now.dtype)
+        return torch.minimum(now, self.moving.signed_distance(points) - grown)
+
+    def contains(self, points: Tensor) -> Tensor:
+        return self.area.contains(points)
+
+    def outward_direction(self, points: Tensor) -> Tensor:
+        return self.area.outward_direction(points)
+
+    def project_out(self, points: Tensor, margin: float = 0.0) -> Tensor:
+        return self.area.project_out(points, margin)
+
+    def segment_clear_fraction(self, starts: Tensor, ends: Tensor) -> Tensor:
+        return self.area.segment_clear_fraction(starts, ends)
+
+    def select_rows(self, rows: Tensor) -> RestrictedArea:
+        def pick(value: Tensor) -> Tensor:
+            return value[rows] if value.dim() == 1 else value
+        return MovingZones(self.area.select_rows(rows), self.moving.select_rows(rows),
+                           pick(self.speed), pick(self.age_s), self.reaction_s)
+
+    def near(self, points: Tensor, reach: float) -> RestrictedArea:
+        farthest = float(self.reach().max()) if self.speed.numel() else 0.0
+        return MovingZones(self.area.near(points, reach),
+                           self.moving.near(points, reach + farthest), self.speed, self.age_s,
+                           self.reaction_s)
+
+    def _inflated(self, radius: float) -> RestrictedArea:
+        return MovingZones(self.area.inflate(radius), self.moving.inflate(radius), self.speed,
+                           self.age_s, self.reaction_s)
+
+    def _bounded(self, workspace: Bounds) -> RestrictedArea:
+        return MovingZones(self.area.bounded(workspace), self.moving, self.speed, self.age_s,
+                           self.reaction_s)

@@ -61,9 +61,8 @@ def test_the_moving_scenario_moves_between_steps(scenarios: dict[str, Scenario])
     assert not first.geometry.equals(later.geometry)
     assert first.area == pytest.approx(later.area)  # translated, not reshaped
     shift = np.asarray(later.geometry.centroid.coords[0]) - first.geometry.centroid.coords[0]
-    np.testing.assert_allclose(shift, np.asarray(hand.motion_offset) * 100 / hand.motion_steps)
-    assert hand.zones_at(hand.motion_steps).geometry.equals(
-        hand.zones_at(hand.motion_steps + 50).geometry)  # then it stays
+    np.testing.assert_allclose(shift, (432 * 100 / 200, 0))  # motion: {offset: [432, 0], steps: 200}
+    assert hand.zones_at(200).geometry.equals(hand.zones_at(250).geometry)  # then it stays
 
 
 # -- Metrics on a hand-made log ------------------------------------------------------------------

@@ -261,7 +261,7 @@ def test_the_sliding_shield_never_lets_the_disc_into_the_grown_zone_within_the_h
     assume(bool(shield._safe(INFLATED, p, v, torch.tensor([[held]], dtype=torch.float64))[0, 0]))
     shield.last = (0, np.array([position]), [np.array([held])], np.array([velocity]))
     out = shield(INFLATED, np.array([position]), np.array([goal]), 0)
-    a, b, c = shield.path.unbind(-1)
+    a, b, c = shield.path.coefficients.unbind(-1)
     path = a[:, None] * p + b[:, None] * v + c[:, None] * torch.from_numpy(out)
     assert INFLATED.signed_distance(path).min() >= shield.margin - 1e-3
 
@@ -334,7 +334,7 @@ def test_a_setpoint_the_shield_lets_through_is_safe_even_if_it_takes_over_a_tick
     assume(bool(shield._safe(INFLATED, p, v, h[:, None], h)[0, 0]))
     shield.last = (0, np.array([position]), [np.array([held])], np.array([velocity]))
     out = torch.from_numpy(shield(INFLATED, np.array([position]), np.array([goal]), 0))
-    a, b, c = shield.path.unbind(-1)
+    a, b, c = shield.path.coefficients.unbind(-1)
     (p_p, p_v, p_u), (v_p, v_v, v_u) = shield.one_step
     p1, v1 = p_p * p + p_v * v + p_u * h, v_p * p + v_v * v + v_u * h
     for start, speed in ((p, v), (p1, v1)):
@@ -363,7 +363,7 @@ def test_when_nothing_is_safe_a_step_late_the_shield_still_keeps_the_on_time_pat
     assume(bool(shield._safe(INFLATED, p, v, torch.tensor([[goal]], dtype=torch.float64))[0, 0]))
     shield.last = (0, np.array([position]), [np.array([held])], np.array([velocity]))
     out = torch.from_numpy(shield(INFLATED, np.array([position]), np.array([goal]), 0))
-    a, b, c = shield.path.unbind(-1)
+    a, b, c = shield.path.coefficients.unbind(-1)
     path = a[:, None] * p + b[:, None] * v + c[:, None] * out
     assert INFLATED.signed_distance(path).min() >= shield.margin - 1e-3
 

@@ -1,5 +1,5 @@
-"""Zone motion: a velocity per id from its stamped updates, the bound assumed where none is
-measured, and the live zone set keeping it as zones come, move and go."""
+"""Zone motion: a velocity per id from its stamped updates, the speed a guarantee assumes of
+each, and the live zone set keeping it as zones come, move and go."""
 
 from __future__ import annotations
 
@@ -30,15 +30,25 @@ def test_a_zone_moving_steadily_is_measured_at_its_velocity(vx: float, vy: float
     assert motion.speed(7) == pytest.approx(np.hypot(vx, vy), abs=1e-6)
 
 
-def test_a_zone_not_yet_measured_is_assumed_to_move_at_the_bound() -> None:
+def test_a_zone_stands_still_until_an_update_shows_it_moving_then_may_move_at_the_bound(
+) -> None:
+    """The assumption a guarantee rests on: published once or republished in place, a zone
+    stands still; once an update has displaced it, it may move at the bound, measured slower
+    or paused, since a hand may set off again at any time."""
     motion = ZoneMotion(speed_bound=250.0)
-    assert motion.speed("unknown") == 250.0
+    assert motion.assumed_speed("unknown") == 0.0 and motion.speed("unknown") == 0.0
+    for k in range(4):  # republished in place
+        motion.observe(1, (100.0, 100.0), 0.1 * k)
+    assert motion.measured(1) and not motion.moving(1) and motion.assumed_speed(1) == 0.0
     for k in range(MIN_UPDATES - 1):
-        motion.observe(1, (100.0 + k, 100.0), 0.1 * k)
-    assert not motion.measured(1) and motion.speed(1) == 250.0
-    assert np.array_equal(motion.velocity(1), (0.0, 0.0))
-    motion.observe(1, (100.0 + MIN_UPDATES - 1, 100.0), 0.1 * (MIN_UPDATES - 1))
-    assert motion.measured(1) and motion.speed(1) == pytest.approx(10.0)
+        motion.observe(2, (100.0 + k, 100.0), 0.1 * k)
+    assert not motion.measured(2) and motion.speed(2) == 0.0  # too few updates to measure
+    assert motion.moving(2) and motion.assumed_speed(2) == 250.0
+    motion.observe(2, (100.0 + MIN_UPDATES - 1, 100.0), 0.1 * (MIN_UPDATES - 1))
+    assert motion.measured(2) and motion.speed(2) == pytest.approx(10.0)
+    for k in range(MIN_UPDATES, MIN_UPDATES + 5):  # then it pauses
+        motion.observe(2, (100.0 + MIN_UPDATES - 1, 100.0), 0.1 * k)
+    assert motion.speed(2) < 1.0 and motion.assumed_speed(2) == 250.0
 
 
 def test_replays_and_pauses_say_nothing_of_motion() -> None:
@@ -77,4 +87,4 @@ def test_the_live_zones_measure_a_republished_zone_and_forget_one_that_goes() ->
     zones.upsert(4, square(40, 0), now=2.2)
     assert zones.motion.speed(4) == pytest.approx(200.0)
     zones.clear()
-    assert zones.motion.speed(4) == 300.0
+    assert zones.motion.speed(4) == 0.0 and not zones.motion.moving(4)

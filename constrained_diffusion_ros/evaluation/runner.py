@@ -14,12 +14,12 @@ import torch
 from constrained_diffusion_ros.evaluation.intervals import bootstrap_mean, wilson
 from constrained_diffusion_ros.evaluation.rollout import RolloutLog, rollout
 from constrained_diffusion_ros.evaluation.scenarios import Scenario
+from constrained_diffusion_ros.evaluation.zone_paths import ZoneMover
 from constrained_diffusion_ros.planning.config import ConstraintConfig
 from constrained_diffusion_ros.planning.liveness import STANDSTILL_NEAR_PX, standstills
 from constrained_diffusion_ros.planning.planners import MixedPlanner
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
-from constrained_diffusion_ros.evaluation.zone_paths import ZoneMover
 from constrained_diffusion_ros.zones.area import RestrictedArea, Translated
 from constrained_diffusion_ros.zones.episodes import EpisodeZones
 from constrained_diffusion_ros.zones.geometry import ZoneSet

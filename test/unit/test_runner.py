@@ -61,7 +61,7 @@ def test_the_moving_scenario_moves_between_steps(scenarios: dict[str, Scenario])
     assert not first.geometry.equals(later.geometry)
     assert first.area == pytest.approx(later.area)  # translated, not reshaped
     shift = np.asarray(later.geometry.centroid.coords[0]) - first.geometry.centroid.coords[0]
-    np.testing.assert_allclose(shift, (432 * 100 / 200, 0))  # motion: {offset: [432, 0], steps: 200}
+    np.testing.assert_allclose(shift, (432 * 100 / 200, 0))  # {offset: [432, 0], steps: 200}
     assert hand.zones_at(200).geometry.equals(hand.zones_at(250).geometry)  # then it stays
 
 

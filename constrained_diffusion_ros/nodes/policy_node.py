@@ -80,7 +80,7 @@ class PolicyNode(Node):
         self.runtime = use_runtime(self.policy, runtime)
         startup.mark(self.runtime)
         self.configurations = load_configurations(values["configurations_file"])
-        self.zones = live_zones(values, self.robot.workspace)
+        self.zones = live_zones(values, self.robot.workspace, self.robot.reaction_s)
         self.generator = torch.Generator().manual_seed(values["noise_seed"])
         self.loop: ChunkLoop | None = None
         self.configuration_changes = 0

@@ -77,9 +77,12 @@ PARAMETERS = (
           "whatever else wakes runs first) where the node may raise it again (CAP_SYS_NICE "
           "or RLIMIT_NICE), and at nice 5 for good once it gets under a quarter of a core; false: "
           "nice 5 throughout", read_only=True),
-    Param("zone_speed_bound", DEFAULT_SPEED_BOUND, "px/s: the speed assumed of a zone whose own "
-          "is not measured yet (a zone id republished with new stamps is measured), and the "
-          "bound a measured one is held to (faster: WARN)", read_only=True, low=0.0),
+    Param("zone_speed_bound", DEFAULT_SPEED_BOUND, "px/s: the speed a zone is assumed able to "
+          "move at, in any direction, once an update (its id republished elsewhere) has shown "
+          "it moving; the shield keeps the disc out of all it can reach before the robot "
+          "reacts (docs/moving_zones.md). A zone never seen moving stands still; one measured "
+          "faster than this: WARN, the guarantee does not hold for it", read_only=True,
+          low=0.0),
     Param("max_zones", DEFAULT_MAX_ZONES, "zones in force at most; more are refused",
           read_only=True, low=1),
     Param("max_vertices", DEFAULT_MAX_VERTICES, "vertices per zone at most", read_only=True,
@@ -130,15 +133,15 @@ def robot_model(values: dict) -> RobotModel:
                       pusher_in_observation=PUSHT_ROBOT.pusher_in_observation)
 
 
-def live_zones(values: dict, workspace: Bounds) -> LiveZones:
+def live_zones(values: dict, workspace: Bounds, reaction_s: float) -> LiveZones:
     """The zones in force: their caps and the plug-in area, which must pickle where a planning
-    process will get it."""
+    process will get it; a moving zone grown for a robot that reacts in `reaction_s`."""
     area = plug_in_area(values["restricted_area"], values["restricted_area_parameters"],
                         workspace)
     if values["mode"] == "realtime" and values["planning_process"]:
         check_picklable(area, values["restricted_area"])
     return LiveZones(values["max_zones"], values["max_vertices"], area, workspace=workspace,
-                     speed_bound=values["zone_speed_bound"])
+                     speed_bound=values["zone_speed_bound"], reaction_s=reaction_s)
 
 
 def plug_in_area(spec: str, parameters: str, workspace: Bounds) -> RestrictedArea | None:

@@ -15,12 +15,13 @@ from std_msgs.msg import Header
 from msg_schemas import TOPICS, qos_profile
 
 # The chunk loop's word on a plug-in zone check (`ChunkLoop.status`), in every mode.
-ZONE_CHECK_KEYS = ("zone_check_errors", "zone_check_failed", "zone_check_error")
+ZONE_CHECK_KEYS = ("zone_check_errors", "zone_check_failed", "zone_check_error", "cornered",
+                   "cornered_steps")
 # Their rise since the last report sets the diagnostic level.
 HEALTH_COUNTERS = ("violations", "unsound_setpoints", "zones_refused", "masks_refused",
                    "observations_refused", "late_steps", "planning_errors", "ticks_withheld",
                    "configuration_changes", "changes_refused", "zone_check_errors",
-                   "runs_restarted")
+                   "runs_restarted", "cornered_steps")
 
 
 class StatusReporter:
@@ -72,6 +73,11 @@ class StatusReporter:
             return DiagnosticStatus.ERROR, (
                 f"zone check failed ({values['zone_check_errors']} fault(s)), the pusher "
                 f"stopped: {values['zone_check_error']}")
+        if since["cornered_steps"] or values.get("cornered") in (True, "True"):
+            return DiagnosticStatus.ERROR, (
+                f"cornered: a moving zone left no free space to retreat into "
+                f"({since['cornered_steps']} step(s) since the last report); the separation "
+                f"kept as large as it can be, the guarantee does not hold")
         if since["planning_errors"] or values.get("planning_failed"):
             # ERROR until a plan arrives again: a planner that died stays news until it plans
             return DiagnosticStatus.ERROR, (
@@ -98,7 +104,8 @@ class StatusReporter:
                             f"{values.get('guarantee')})")
         if values.get("zones_over_speed_bound"):
             problems.append(f"zone(s) {values['zones_over_speed_bound']} move faster than "
-                            f"zone_speed_bound (the speed a zone is assumed to keep)")
+                            f"zone_speed_bound: the separation guarantee does not hold for "
+                            f"them")
         if since["runs_restarted"]:
             problems.append(f"{since['runs_restarted']} new run(s): an observation stamped no "
                             f"later than the last (a reset, or a participant sending old "

@@ -322,6 +322,15 @@ class ChunkLoop:
             return False
         return bool(self._zones_now()[1][0] == self.planned_version[0])
 
+    def _cornered(self) -> dict[str, object]:
+        """Whether the shield's last answer for the first row found it cornered by a moving
+        zone (no free space to retreat into), and how often it was so far."""
+        shield = getattr(self.planner, "shield", None)
+        if shield is None:
+            return {}
+        return {"cornered": bool(shield.cornered[:1].any()),
+                "cornered_steps": shield.cornered_steps}
+
     def status(self) -> dict[str, object]:
         """The loop's and its worker's counters, for diagnostics (`planning_error`: the
         worker's last fault, or None; `zone_check_error`: a plug-in zone check's last fault,
@@ -341,6 +350,7 @@ class ChunkLoop:
                 "planning_errors": worker.errors, "planning_failed": worker.failed,
                 "planning_restarts": worker.restarts, "planning_error": worker.error,
                 "zone_check_errors": self.zone_check_errors,
+                **self._cornered(),
                 "zone_check_failed": self.zone_check_failed or (
                     worker.failed and isinstance(worker.error, ZoneCheckError)),
                 "zone_check_error": str(self.zone_check_error or "")}

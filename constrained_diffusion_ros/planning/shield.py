@@ -102,6 +102,7 @@ class PusherShield:
         # (2, 3) n control steps, n = 1 .. MAX_GAP_STEPS: entry n - 1
         self.control_steps = coefficients[robot.substeps - 1::robot.substeps][:MAX_GAP_STEPS]
         self.fractions = torch.tensor(FRACTIONS, dtype=torch.float64)
+        self.cornered_steps = 0  # calls that left a row cornered (kept over resets: a count)
         self.reach = (path[:, 2].abs().max(), path[:, 1].abs().max())
         self.margin, self.escape, self.slide = margin, escape, slide
         # The inflated area's arcs are chords, up to radius * BUFFER_SAG inside the true disc's
@@ -122,7 +123,6 @@ class PusherShield:
         # Rows of the last call that a moving zone left no safe setpoint (no free space to
         # retreat into): the one kept farthest from the zones was taken instead.
         self.cornered = np.zeros(0, dtype=bool)
-        self.cornered_steps = 0  # row-calls cornered since the reset
 
     def estimate(self, position: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray]:
         """(velocity (B, 2), setpoints that may be in force (K, B, 2), newest last) at the

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
@@ -13,7 +14,7 @@ from numpy.typing import ArrayLike
 
 from constrained_diffusion_ros.zones.area import AreaUnion, Bounds, RestrictedArea
 from constrained_diffusion_ros.zones.geometry import ZoneSet, validate_polygon
-from constrained_diffusion_ros.zones.motion import DEFAULT_SPEED_BOUND, ZoneMotion
+from constrained_diffusion_ros.zones.motion import DEFAULT_SPEED_BOUND, MovingZones, ZoneMotion
 
 ZoneId = str | int
 
@@ -25,6 +26,8 @@ class _Zone:
     expires_at: float  # math.inf: never
     capped: bool = True  # counts toward max_zones (a message's zone; not a mask's piece)
     stamp: float | None = None  # the message's stamp (None: unstamped)
+    # time.monotonic() at which the zone was where it is: its receipt less how old it was then
+    seen_at: float = 0.0
 
 
 # The largest caps at which a batch of zone messages costs under one control period and a DDIM
@@ -33,6 +36,12 @@ class _Zone:
 DEFAULT_MAX_ZONES = 32
 DEFAULT_MAX_VERTICES = 64
 CLEARED_KEPT = 4096  # (id, stamp) pairs of cleared zones remembered at most
+# s: a stamp older than this on arrival is taken as this old (a publisher's clock far behind
+# would otherwise grow a moving zone over the whole workspace)
+MAX_AGE_ON_ARRIVAL_S = 1.0
+# s: the robot's reaction a moving zone is grown by where the node names none (the PushT
+# robot's: two control steps and the PD law's lag, `RobotModel.reaction_s`)
+DEFAULT_REACTION_S = 0.4
 
 
 @dataclass
@@ -75,9 +84,12 @@ class LiveZones:
     def __init__(self, max_zones: int = DEFAULT_MAX_ZONES,
                  max_vertices: int = DEFAULT_MAX_VERTICES,
                  fixed: RestrictedArea | None = None, workspace: Bounds | None = None,
-                 speed_bound: float = DEFAULT_SPEED_BOUND) -> None:
+                 speed_bound: float = DEFAULT_SPEED_BOUND,
+                 reaction_s: float = DEFAULT_REACTION_S) -> None:
         self.max_zones, self.max_vertices = max_zones, max_vertices
         self.motion = ZoneMotion(speed_bound)  # each id's velocity, from its stamped updates
+        self.reaction_s = reaction_s  # what a moving zone's reach is sized by (MovingZones)
+        self._moving: tuple[ZoneSet, ZoneSet] | None = None  # (snapshot, its moving zones)
         self.workspace = workspace  # zones are clipped to it, so what is accepted is enforced
         self.fixed = fixed  # always in force besides the zones (a plug-in check)
         self._union: tuple[ZoneSet, RestrictedArea] | None = None
@@ -125,7 +137,9 @@ class LiveZones:
                     in_force >= self.max_zones:
                 raise ValueError(f"zone {zone_id!r}: {self.max_zones} zones in force already "
                                  f"(the cap); remove one first")
-            self._zones[zone_id] = _Zone(polygon, vertices, expires_at, capped, stamp)
+            age = 0.0 if stamp is None else min(max(now - stamp, 0.0), MAX_AGE_ON_ARRIVAL_S)
+            self._zones[zone_id] = _Zone(polygon, vertices, expires_at, capped, stamp,
+                                         time.monotonic() - age)
             self.motion.observe(zone_id, shapely.get_coordinates(polygon.centroid)[0],
                                 now if stamp is None else stamp)
             if previous is None or not previous.polygon.equals_exact(polygon, 0.0):
@@ -198,17 +212,38 @@ class LiveZones:
     # The executor's zone source: the same zones for every step and episode, until they change.
 
     def area_at(self, step: int) -> RestrictedArea | None:
-        """The zones in force and the fixed area, or None when there is neither. `step` is not
-        used: live zones are those in force now, whatever the step (it is there for the
-        executor's `ZoneSource`, whose scripted zones change at given steps)."""
+        """The zones in force and the fixed area, or None when there is neither; as
+        `MovingZones` where zones move (`ZoneMotion.assumed_speed`), aged from when they were
+        where they are, sized by `reaction_s`. `step` is not used: live zones are those in
+        force now, whatever the step (it is there for the executor's `ZoneSource`, whose
+        scripted zones change at given steps)."""
         snapshot = self.snapshot()
         if self.fixed is None:
-            return None if snapshot.is_empty else snapshot
-        if snapshot.is_empty:
-            return self.fixed
-        if self._union is None or self._union[0] is not snapshot:  # one per snapshot
-            self._union = (snapshot, AreaUnion([self.fixed, snapshot]))
-        return self._union[1]
+            area = None if snapshot.is_empty else snapshot
+        elif snapshot.is_empty:
+            area = self.fixed
+        else:
+            if self._union is None or self._union[0] is not snapshot:  # one per snapshot
+                self._union = (snapshot, AreaUnion([self.fixed, snapshot]))
+            area = self._union[1]
+        moving = self._moving_zones(snapshot)
+        if area is None or moving is None:
+            return area
+        zones, seen_at, speed = moving
+        return MovingZones(area, zones, speed, max(0.0, time.monotonic() - seen_at),
+                           self.reaction_s)
+
+    def _moving_zones(self, snapshot: ZoneSet) -> tuple[ZoneSet, float, float] | None:
+        """(the zones that move, when the one seen longest ago was last seen where it is, the
+        fastest speed assumed of them) for `snapshot`, or None: none moves."""
+        with self._lock:
+            moving = [(i, z) for i, z in self._zones.items() if self.motion.moving(i)]
+            if not moving:
+                return None
+            if self._moving is None or self._moving[0] is not snapshot:  # one per snapshot
+                self._moving = (snapshot, ZoneSet(z.polygon for _, z in moving))
+            return (self._moving[1], min(z.seen_at for _, z in moving),
+                    max(self.motion.assumed_speed(i) for i, _ in moving))
 
     def version_at(self, step: int) -> int:
         return self._version

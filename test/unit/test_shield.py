@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from hypothesis import HealthCheck, assume, example, given, settings
+from hypothesis import HealthCheck, assume, event, example, given, settings
 from hypothesis import strategies as st
 
 from constrained_diffusion_ros.planning.config import ConstraintConfig
@@ -14,6 +14,8 @@ from constrained_diffusion_ros.planning.shield import MAX_GAP_STEPS, PusherShiel
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones import EpisodeZones, ZoneSet, rectangle
+from constrained_diffusion_ros.zones.area import Translated
+from constrained_diffusion_ros.zones.motion import MovingZones
 from sim_bridge import AGENT_RADIUS, PushTSim
 
 ZONE = ZoneSet.from_polygons([rectangle(200, 200, 400, 400)])
@@ -437,3 +439,77 @@ def test_a_pusher_the_shield_does_not_check_is_clear_now_and_a_step_late(
     assume(bool(INFLATED.signed_distance(p.float())[0]
                 >= shield._reach(p, v, h, g)[0] + shield.clearance))
     assert bool(shield._safe(INFLATED, p, v, g[:, None], h)[0, 0])
+
+
+# -- Zones that move -----------------------------------------------------------------------------
+
+BOUND = 300.0  # px/s: the speed a moving zone is assumed able to keep
+
+
+def chase(centre: tuple, side: float, speed: float, heading: float, homing: bool,
+          start: np.ndarray, goal: tuple, assumed: float = BOUND, ticks: int = 20
+          ) -> tuple[float, bool]:
+    """A square zone of `side` px from `centre` moving at `speed` px/s, along `heading` or
+    homing on the pusher, a pusher at rest at `start` sent to `goal` through the shield, which
+    takes the zone as able to move at `assumed` (from where it was seen, just now). Returns
+    the least gap between the disc and the zone as it was at each physics substep (px,
+    negative: overlap) before the shield first said it was cornered, and whether it did."""
+    robot, shield = PUSHT_ROBOT, PusherShield(PUSHT_ROBOT)
+    half = side / 2
+    drawn = ZoneSet.from_polygons([rectangle(-half, -half, half, half)])
+    step_s, substep = 1.0 / robot.physics_hz, robot.transition(1)[0]
+    position, velocity = np.asarray(start, dtype=float), np.zeros(2)
+    offset = np.asarray(centre, dtype=float)
+    zone_velocity = speed * np.array([np.cos(heading), np.sin(heading)])
+    closest = np.inf
+    for tick in range(ticks):
+        here = Translated(drawn, torch.from_numpy(offset))
+        area = MovingZones(here, here, assumed, 0.0, robot.reaction_s)
+        area = area.bounded(robot.workspace).inflate(robot.pusher_radius)
+        setpoint = shield(area, position[None], np.array([goal]), tick)[0]
+        if shield.cornered.any():
+            return closest, True
+        for _ in range(robot.substeps):
+            if homing:  # straight for the pusher, at its speed
+                toward = position - offset
+                zone_velocity = speed * toward / max(np.linalg.norm(toward), 1e-9)
+            offset = offset + zone_velocity * step_s
+            position, velocity = substep @ np.stack([position, velocity, setpoint])
+            depth = drawn.signed_distance(torch.from_numpy(position - offset)[None])[0]
+            closest = min(closest, float(depth) - robot.pusher_radius)
+    return closest, False
+
+
+@settings(max_examples=120, deadline=None)
+@given(centre=st.tuples(st.floats(150, 362), st.floats(150, 362)), side=st.floats(20, 90),
+       speed=st.floats(0, BOUND), heading=st.floats(0, 2 * np.pi), homing=st.booleans(),
+       bearing=st.floats(0, 2 * np.pi), gap=st.floats(0, 80),
+       goal=st.tuples(st.floats(20, 492), st.floats(20, 492)))
+def test_a_zone_moving_within_its_bound_never_reaches_the_disc_unless_the_shield_says_cornered(
+        centre: tuple, side: float, speed: float, heading: float, homing: bool,
+        bearing: float, gap: float, goal: tuple) -> None:
+    """From a pusher at rest whose disc is clear of what the zone can reach before it reacts
+    (`MovingZones.reach`), the zone moving at up to its bound, straight or homing on the
+    pusher, every physics substep for 2 s: the disc stays out of the zone as it is at that
+    substep, unless the shield has said that it found no free space to retreat into
+    (`cornered`: a wall behind the pusher). The pusher is sent to `goal` throughout."""
+    robot = PUSHT_ROBOT
+    direction = np.array([np.cos(bearing), np.sin(bearing)])
+    reach = BOUND * robot.reaction_s + 2 * PusherShield(robot).clearance
+    start = np.asarray(centre) + direction * (side / np.sqrt(2) + robot.pusher_radius + reach
+                                              + gap)
+    low, high = np.array(robot.workspace[:2]), np.array(robot.workspace[2:])
+    assume(np.all(start > low + robot.pusher_radius) and np.all(start < high - robot.pusher_radius))
+    closest, cornered = chase(centre, side, speed, heading, homing, start, goal)
+    event(f"cornered: {cornered}")
+    event(f"closest gap: {'under 20 px' if closest < 20 else '20 px or more'}")
+    assert closest >= -1e-3, f"the disc went {-closest:.2f} px into the zone"
+
+
+def test_a_hand_homing_on_the_pusher_reaches_it_unless_the_shield_knows_it_moves() -> None:
+    """The issue's finding: a zone taken to stand still between its updates runs over the
+    pusher at 200 px/s; taken to move at up to the bound, it never reaches the disc."""
+    start, centre = np.array([256.0, 256.0]), (100.0, 256.0)
+    static, _ = chase(centre, 60, 200.0, 0.0, True, start, tuple(start), assumed=0.0)
+    moving, cornered = chase(centre, 60, 200.0, 0.0, True, start, tuple(start))
+    assert static < -10 and moving > 0 and not cornered

@@ -23,7 +23,12 @@ from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones.area import RestrictedArea, Translated
 from constrained_diffusion_ros.zones.episodes import EpisodeZones
 from constrained_diffusion_ros.zones.geometry import ZoneSet
-from constrained_diffusion_ros.zones.motion import DEFAULT_SPEED_BOUND, MOVED_PX, MovingZones
+from constrained_diffusion_ros.zones.motion import (
+    DEFAULT_SPEED_BOUND,
+    MOVED_PX,
+    MovingZones,
+    assumed_speeds,
+)
 
 DEFAULT_SEEDS = tuple(range(100000, 100025))
 # Where a contact is checked for being unavoidable: the pusher's one-step reach sampled on
@@ -180,8 +185,8 @@ class ScenarioZones:
     """The zone source of a batched evaluation: row b sees the zones of scenario
     `scenario_of_row[b]`, which change every step while that scenario moves (a homing one
     differently in each row: `follow` tells it the pushers). Moving zones come as
-    `MovingZones`, each assumed able to move at `speed_bound` once it has moved (as a node
-    assumes of live zones, `zones.motion`); `offsets` keeps where each row's zones were."""
+    `MovingZones`, each assumed able to move as a node assumes of live zones updated at the
+    control rate (`zones.motion`); `offsets` keeps where each row's zones were."""
 
     def __init__(self, scenarios: Sequence[Scenario], scenario_of_row: np.ndarray,
                  speed_bound: float = DEFAULT_SPEED_BOUND) -> None:
@@ -193,6 +198,7 @@ class ScenarioZones:
                        for i, s in enumerate(self.scenarios) if s.moving and s.area is None}
         self.offsets: dict[int, np.ndarray] = {}  # step -> (B, 2) each row's zones moved by
         self.moved = np.zeros(len(scenario_of_row), dtype=bool)  # seen moving so far
+        self.fastest = np.zeros(len(scenario_of_row))  # px/s, between two steps so far
         self.pusher: np.ndarray | None = None
 
     def follow(self, step: int, pusher: np.ndarray) -> None:
@@ -209,11 +215,13 @@ class ScenarioZones:
                 rows = self.rows[index]
                 offsets[rows] = mover.at(step, None if self.pusher is None
                                          else self.pusher[rows])
-            if step - 1 in self.offsets:
+            if step - 1 in self.offsets:  # updates at the control rate, as a tracker's
                 shift = np.linalg.norm(offsets - self.offsets[step - 1], axis=-1)
                 self.moved |= shift > MOVED_PX
+                self.fastest = np.where(self.moved, np.maximum(
+                    self.fastest, shift * PUSHT_ROBOT.control_hz), 0.0)
             elif step == 0:
-                self.moved[:] = False
+                self.moved[:], self.fastest[:] = False, 0.0
             self.offsets[step] = offsets
         return self.offsets[step]
 
@@ -221,19 +229,20 @@ class ScenarioZones:
         if not self.movers:
             return EpisodeZones([s.zones_at(step) for s in self.scenarios], self.scenario_of_row)
         offsets = torch.from_numpy(self.offsets_at(step))
-        areas, moving = [], []
+        areas, still, moving = [], [], []
         for index, scenario in enumerate(self.scenarios):
             if index in self.movers:
-                drawn = scenario.zones_at(0)
-                areas.append(Translated(drawn, offsets[self.rows[index]]))
+                areas.append(Translated(scenario.zones_at(0), offsets[self.rows[index]]))
+                still.append(ZoneSet.empty())
                 moving.append(areas[-1])
             else:
                 areas.append(scenario.zones_at(step))
+                still.append(areas[-1])
                 moving.append(ZoneSet.empty())
-        speed = torch.from_numpy(np.where(self.moved, self.speed_bound, 0.0))
-        return MovingZones(EpisodeZones(areas, self.scenario_of_row),
-                           EpisodeZones(moving, self.scenario_of_row), speed, 0.0,
-                           PUSHT_ROBOT.reaction_s)
+        speed = torch.from_numpy(assumed_speeds(self.moved, self.fastest, self.speed_bound))
+        return MovingZones(*(EpisodeZones(parts, self.scenario_of_row)
+                             for parts in (areas, still, moving)),
+                           speed, 0.0, PUSHT_ROBOT.reaction_s)
 
     def version_at(self, step: int) -> np.ndarray:
         return np.where(self.moving, step, 0)

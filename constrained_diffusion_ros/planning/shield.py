@@ -65,7 +65,7 @@ SPARSE = 6  # a quick refusal first looks at every SPARSE-th substep of a path
 FEW = 2  # candidates that passed it, checked whole at once, in order
 # Retreats from a moving zone: points around the pusher at these multiples of the zone's reach
 # (speed x (age + reaction)), in DIRECTIONS directions, plus RETREAT_PX.
-RETREAT_REACHES = (0.5, 1.0, 1.5, 2.0)
+RETREAT_REACHES = (1.0, 2.0)
 RETREAT_PX = 10.0
 
 

@@ -89,7 +89,8 @@ class LiveZones:
         self.max_zones, self.max_vertices = max_zones, max_vertices
         self.motion = ZoneMotion(speed_bound)  # each id's velocity, from its stamped updates
         self.reaction_s = reaction_s  # what a moving zone's reach is sized by (MovingZones)
-        self._moving: tuple[ZoneSet, ZoneSet] | None = None  # (snapshot, its moving zones)
+        # (snapshot, its zones that stand still with the fixed area, those that move)
+        self._moving: tuple[ZoneSet, RestrictedArea, ZoneSet] | None = None
         self.workspace = workspace  # zones are clipped to it, so what is accepted is enforced
         self.fixed = fixed  # always in force besides the zones (a plug-in check)
         self._union: tuple[ZoneSet, RestrictedArea] | None = None
@@ -229,20 +230,26 @@ class LiveZones:
         moving = self._moving_zones(snapshot)
         if area is None or moving is None:
             return area
-        zones, seen_at, speed = moving
-        return MovingZones(area, zones, speed, max(0.0, time.monotonic() - seen_at),
+        still, zones, seen_at, speed = moving
+        return MovingZones(area, still, zones, speed, max(0.0, time.monotonic() - seen_at),
                            self.reaction_s)
 
-    def _moving_zones(self, snapshot: ZoneSet) -> tuple[ZoneSet, float, float] | None:
-        """(the zones that move, when the one seen longest ago was last seen where it is, the
-        fastest speed assumed of them) for `snapshot`, or None: none moves."""
+    def _moving_zones(self, snapshot: ZoneSet
+                      ) -> tuple[RestrictedArea, ZoneSet, float, float] | None:
+        """(the zones that stand still and the fixed area, the zones that move, when the one
+        seen longest ago was last seen where it is, the fastest speed assumed of them) for
+        `snapshot`, or None: none moves."""
         with self._lock:
             moving = [(i, z) for i, z in self._zones.items() if self.motion.moving(i)]
             if not moving:
                 return None
             if self._moving is None or self._moving[0] is not snapshot:  # one per snapshot
-                self._moving = (snapshot, ZoneSet(z.polygon for _, z in moving))
-            return (self._moving[1], min(z.seen_at for _, z in moving),
+                ids = {i for i, _ in moving}
+                still = ZoneSet(z.polygon for i, z in self._zones.items() if i not in ids)
+                if self.fixed is not None:
+                    still = AreaUnion([self.fixed, still])
+                self._moving = (snapshot, still, ZoneSet(z.polygon for _, z in moving))
+            return (*self._moving[1:], min(z.seen_at for _, z in moving),
                     max(self.motion.assumed_speed(i) for i, _ in moving))
 
     def version_at(self, step: int) -> int:

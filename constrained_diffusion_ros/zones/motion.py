@@ -4,12 +4,18 @@ guarantee assumes of each, and the area a shield checks against (`MovingZones`).
 A moving zone is the same id republished with a new stamp (a hand a camera tracks). Its
 velocity is the displacement of its centroid between two updates over the time between their
 stamps, smoothed over the updates before; after a gap longer than `max_gap_s` it is measured
-afresh. What a guarantee assumes (`assumed_speed`): a zone that no update has shown moving
-stands still (a zone published once, or republished in place: the static guarantee); one seen
-moving may move at up to `speed_bound` in any direction from then on, whatever its measured
-speed, as ISO 13855 assumes an approach speed rather than trusting a person to keep to one. A
-zone measured faster than the bound breaks that assumption: `over_bound` names it, so it is
-said, not trusted.
+afresh.
+
+What a guarantee assumes of a zone (`assumed_speed`, the zone's own bound):
+- a zone no update has shown moving stands still (published once, or republished in place:
+  the static guarantee);
+- one seen moving may move in any direction, from then on, at up to `headroom` times the
+  fastest it has been measured between two updates (at least `floor`), never more than
+  `speed_bound`; with `headroom` 0, at `speed_bound` whatever it was measured at, as ISO 13855
+  assumes an approach speed rather than trusting a person to keep to one.
+A zone measured faster than the bound, or faster than it was assumed to move before that
+update, broke the assumption: `over_bound` names the first, `exceeded` counts the second, so
+it is said, not trusted.
 """
 
 from __future__ import annotations
@@ -31,6 +37,19 @@ MIN_UPDATES = 3  # updates (two displacements) before a zone's own speed is trus
 MAX_GAP_S = 1.0  # a longer pause between updates starts the estimate afresh
 SMOOTHING = 0.5  # weight of the newest displacement in the velocity
 MOVED_PX = 0.5  # a centroid displaced more between two updates: the zone moves
+# A moving zone's own bound: HEADROOM x the fastest it was measured at, at least FLOOR px/s:
+# a hand that sets off again after a pause, or speeds up by half, is still covered.
+HEADROOM = 1.5
+FLOOR = 50.0
+
+
+def assumed_speeds(moved: np.ndarray, fastest: np.ndarray, bound: float,
+                   headroom: float = HEADROOM, floor: float = FLOOR) -> np.ndarray:
+    """px/s a guarantee assumes of zones (one per entry): 0 for those never seen moving, else
+    headroom x their fastest measured speed (at least `floor`, at most `bound`; the bound
+    itself with headroom 0)."""
+    own = np.minimum(bound, np.maximum(floor, headroom * np.asarray(fastest, dtype=float)))
+    return np.where(np.asarray(moved), bound if headroom == 0 else own, 0.0)
 
 
 @dataclass
@@ -42,6 +61,7 @@ class Track:
     velocity: np.ndarray  # (2,) px/s; zero until two updates
     updates: int  # updates since the estimate (re)started
     moved: bool = False  # an update has shown it displaced (it may move again at any time)
+    fastest: float = 0.0  # px/s, the fastest displacement between two updates so far
 
 
 class ZoneMotion:
@@ -49,11 +69,15 @@ class ZoneMotion:
     is gone. Not thread-safe: its owner (`LiveZones`) holds its lock around it."""
 
     def __init__(self, speed_bound: float = DEFAULT_SPEED_BOUND, min_updates: int = MIN_UPDATES,
-                 max_gap_s: float = MAX_GAP_S) -> None:
+                 max_gap_s: float = MAX_GAP_S, headroom: float = HEADROOM) -> None:
         if not speed_bound >= 0:
             raise ValueError(f"the zone speed bound must be >= 0 px/s, got {speed_bound}")
+        if not headroom >= 0:
+            raise ValueError(f"the zone speed headroom must be >= 0, got {headroom}")
         self.speed_bound, self.min_updates, self.max_gap_s = speed_bound, min_updates, max_gap_s
+        self.headroom = headroom
         self.tracks: dict[object, Track] = {}
+        self.exceeded = 0  # updates that showed a zone faster than it was assumed to move
 
     def observe(self, zone_id: object, centroid: ArrayLike, stamp: float) -> None:
         """A zone's update: its centroid (px) at `stamp` (s). An update no later than the last
@@ -62,16 +86,23 @@ class ZoneMotion:
         track = self.tracks.get(zone_id)
         if track is not None and stamp <= track.stamp:
             return
-        displaced = track is not None and \
-            float(np.linalg.norm(centroid - track.centroid)) > MOVED_PX
-        moved = track is not None and (track.moved or displaced)
-        if track is None or stamp - track.stamp > self.max_gap_s:
-            self.tracks[zone_id] = Track(stamp, centroid, np.zeros(2), 1, moved)
+        if track is None:
+            self.tracks[zone_id] = Track(stamp, centroid, np.zeros(2), 1)
+            return
+        displacement = float(np.linalg.norm(centroid - track.centroid))
+        raw = displacement / (stamp - track.stamp)
+        if track.moved and raw > self._assumed(track):
+            self.exceeded += 1
+        moved = track.moved or displacement > MOVED_PX
+        fastest = max(track.fastest, raw) if moved else 0.0
+        if stamp - track.stamp > self.max_gap_s:
+            self.tracks[zone_id] = Track(stamp, centroid, np.zeros(2), 1, moved, fastest)
             return
         velocity = (centroid - track.centroid) / (stamp - track.stamp)
         if track.updates > 1:
             velocity = SMOOTHING * velocity + (1 - SMOOTHING) * track.velocity
-        self.tracks[zone_id] = Track(stamp, centroid, velocity, track.updates + 1, moved)
+        self.tracks[zone_id] = Track(stamp, centroid, velocity, track.updates + 1, moved,
+                                     fastest)
 
     def forget(self, zone_id: object) -> None:
         self.tracks.pop(zone_id, None)
@@ -98,9 +129,14 @@ class ZoneMotion:
         return track is not None and track.moved
 
     def assumed_speed(self, zone_id: object) -> float:
-        """px/s a guarantee assumes of the zone: the bound once it has been seen moving, else
-        0 (it stands still)."""
-        return self.speed_bound if self.moving(zone_id) else 0.0
+        """px/s a guarantee assumes of the zone (its own bound: the module's rule); 0 for one
+        never seen moving."""
+        track = self.tracks.get(zone_id)
+        return 0.0 if track is None else self._assumed(track)
+
+    def _assumed(self, track: Track) -> float:
+        return float(assumed_speeds(track.moved, track.fastest, self.speed_bound,
+                                    self.headroom))
 
     def over_bound(self) -> list[object]:
         """Ids of the zones measured faster than the bound."""
@@ -112,10 +148,12 @@ class MovingZones(RestrictedArea):
     """Zones where they were last seen, some of which move: what a shield checks a path
     against (`signed_distance_after`); every other query answers for the zones as they are.
 
-    `area` is every zone (batch-aware or one for every row); `moving` the part of it that
-    moves. A moving zone may cover, `t` s from now, any point within
-    `speed * (age_s + min(t, reaction_s))` of where it was seen: `speed` (px/s, one or (B,)
-    per row) the speed assumed of it, `age_s` (s, one or (B,)) since it was where it was seen,
+    `area` is every zone (batch-aware or one for every row), `still` the part of it that
+    stands still and `moving` the part that moves (`still` and `moving` make `area`; they are
+    given apart so that no distance is taken twice). A moving zone may cover, `t` s from now,
+    any point within `speed * (age_s + min(t, reaction_s))` of where it was seen: `speed`
+    (px/s, one or (B,) per row) the speed assumed of it, `age_s` (s, one or (B,)) since it was
+    where it was seen,
     `reaction_s` the time the robot needs to react (the setpoint in force until the next one
     takes over, and the PD law's lag behind a setpoint that retreats). Past `reaction_s` the
     zone is taken no farther: a path is checked against what the zone can reach before the
@@ -123,9 +161,10 @@ class MovingZones(RestrictedArea):
     protective separation distance; the shield checks again at every tick.
     """
 
-    def __init__(self, area: RestrictedArea, moving: RestrictedArea, speed: Tensor | float,
-                 age_s: Tensor | float, reaction_s: float) -> None:
-        self.area, self.moving, self.reaction_s = area, moving, float(reaction_s)
+    def __init__(self, area: RestrictedArea, still: RestrictedArea, moving: RestrictedArea,
+                 speed: Tensor | float, age_s: Tensor | float, reaction_s: float) -> None:
+        self.area, self.still, self.moving = area, still, moving
+        self.reaction_s = float(reaction_s)
         self.speed = torch.as_tensor(speed, dtype=torch.float64)
         self.age_s = torch.as_tensor(age_s, dtype=torch.float64)
 
@@ -139,7 +178,7 @@ class MovingZones(RestrictedArea):
         return self.area.signed_distance(points)
 
     def signed_distance_after(self, points: Tensor, seconds: Tensor | float) -> Tensor:
-        now = self.area.signed_distance(points)
+        now = self.still.signed_distance(points)
         seconds = torch.as_tensor(seconds, dtype=torch.float64).clamp_max(self.reaction_s)
         speed, age = self.speed, self.age_s
         if speed.dim() == 1:  # per row: (B,) against (B, ...)
@@ -164,19 +203,20 @@ class MovingZones(RestrictedArea):
     def select_rows(self, rows: Tensor) -> RestrictedArea:
         def pick(value: Tensor) -> Tensor:
             return value[rows] if value.dim() == 1 else value
-        return MovingZones(self.area.select_rows(rows), self.moving.select_rows(rows),
-                           pick(self.speed), pick(self.age_s), self.reaction_s)
+        return MovingZones(self.area.select_rows(rows), self.still.select_rows(rows),
+                           self.moving.select_rows(rows), pick(self.speed), pick(self.age_s),
+                           self.reaction_s)
 
     def near(self, points: Tensor, reach: float) -> RestrictedArea:
         farthest = float(self.reach().max()) if self.speed.numel() else 0.0
-        return MovingZones(self.area.near(points, reach),
+        return MovingZones(self.area.near(points, reach), self.still.near(points, reach),
                            self.moving.near(points, reach + farthest), self.speed, self.age_s,
                            self.reaction_s)
 
     def _inflated(self, radius: float) -> RestrictedArea:
-        return MovingZones(self.area.inflate(radius), self.moving.inflate(radius), self.speed,
-                           self.age_s, self.reaction_s)
+        return MovingZones(self.area.inflate(radius), self.still.inflate(radius),
+                           self.moving.inflate(radius), self.speed, self.age_s, self.reaction_s)
 
     def _bounded(self, workspace: Bounds) -> RestrictedArea:
-        return MovingZones(self.area.bounded(workspace), self.moving, self.speed, self.age_s,
-                           self.reaction_s)
+        return MovingZones(self.area.bounded(workspace), self.still.bounded(workspace),
+                           self.moving, self.speed, self.age_s, self.reaction_s)

@@ -464,7 +464,7 @@ def chase(centre: tuple, side: float, speed: float, heading: float, homing: bool
     closest = np.inf
     for tick in range(ticks):
         here = Translated(drawn, torch.from_numpy(offset))
-        area = MovingZones(here, here, assumed, 0.0, robot.reaction_s)
+        area = MovingZones(here, ZoneSet.empty(), here, assumed, 0.0, robot.reaction_s)
         area = area.bounded(robot.workspace).inflate(robot.pusher_radius)
         setpoint = shield(area, position[None], np.array([goal]), tick)[0]
         if shield.cornered.any():

@@ -9,7 +9,12 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from constrained_diffusion_ros.zones.live import LiveZones
-from constrained_diffusion_ros.zones.motion import MAX_GAP_S, MIN_UPDATES, ZoneMotion
+from constrained_diffusion_ros.zones.motion import (
+    FLOOR,
+    HEADROOM,
+    MAX_GAP_S,
+    ZoneMotion,
+)
 
 pytestmark = pytest.mark.unit
 
@@ -30,25 +35,32 @@ def test_a_zone_moving_steadily_is_measured_at_its_velocity(vx: float, vy: float
     assert motion.speed(7) == pytest.approx(np.hypot(vx, vy), abs=1e-6)
 
 
-def test_a_zone_stands_still_until_an_update_shows_it_moving_then_may_move_at_the_bound(
-) -> None:
+def test_a_zone_stands_still_until_an_update_shows_it_moving_then_keeps_its_own_bound() -> None:
     """The assumption a guarantee rests on: published once or republished in place, a zone
-    stands still; once an update has displaced it, it may move at the bound, measured slower
-    or paused, since a hand may set off again at any time."""
+    stands still; once an update has displaced it, it may move at HEADROOM times the fastest
+    it was measured at (at least FLOOR, at most the bound), paused or not, since a hand may
+    set off again at any time; with headroom 0, at the bound."""
     motion = ZoneMotion(speed_bound=250.0)
     assert motion.assumed_speed("unknown") == 0.0 and motion.speed("unknown") == 0.0
     for k in range(4):  # republished in place
         motion.observe(1, (100.0, 100.0), 0.1 * k)
     assert motion.measured(1) and not motion.moving(1) and motion.assumed_speed(1) == 0.0
-    for k in range(MIN_UPDATES - 1):
-        motion.observe(2, (100.0 + k, 100.0), 0.1 * k)
+    motion.observe(2, (100.0, 100.0), 0.0)
+    motion.observe(2, (101.0, 100.0), 0.1)  # 10 px/s
     assert not motion.measured(2) and motion.speed(2) == 0.0  # too few updates to measure
-    assert motion.moving(2) and motion.assumed_speed(2) == 250.0
-    motion.observe(2, (100.0 + MIN_UPDATES - 1, 100.0), 0.1 * (MIN_UPDATES - 1))
-    assert motion.measured(2) and motion.speed(2) == pytest.approx(10.0)
-    for k in range(MIN_UPDATES, MIN_UPDATES + 5):  # then it pauses
-        motion.observe(2, (100.0 + MIN_UPDATES - 1, 100.0), 0.1 * k)
-    assert motion.speed(2) < 1.0 and motion.assumed_speed(2) == 250.0
+    assert motion.moving(2) and motion.assumed_speed(2) == FLOOR
+    motion.observe(2, (105.0, 100.0), 0.2)  # 40 px/s: within the floor assumed
+    assert motion.measured(2) and motion.assumed_speed(2) == pytest.approx(HEADROOM * 40.0)
+    for k in range(3, 8):  # then it pauses
+        motion.observe(2, (105.0, 100.0), 0.1 * k)
+    assert motion.speed(2) < 5.0 and motion.assumed_speed(2) == pytest.approx(HEADROOM * 40)
+    assert motion.exceeded == 0
+    motion.observe(2, (135.0, 100.0), 0.8)  # 300 px/s: faster than assumed, and the bound
+    assert motion.exceeded == 1 and motion.assumed_speed(2) == 250.0
+    strict = ZoneMotion(speed_bound=250.0, headroom=0.0)
+    strict.observe(3, (0.0, 0.0), 0.0)
+    strict.observe(3, (1.0, 0.0), 0.1)
+    assert strict.assumed_speed(3) == 250.0
 
 
 def test_replays_and_pauses_say_nothing_of_motion() -> None:

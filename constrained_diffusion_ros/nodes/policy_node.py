@@ -308,17 +308,20 @@ class PolicyNode(Node):
 
     def _nearest_zone(self) -> dict[str, object]:
         """The zone nearest the pusher: its id, the gap between it and the pusher's disc (px,
-        negative: overlapping) and the speed assumed of it (px/s); the zones measured faster
-        than `zone_speed_bound`."""
+        negative: overlapping), its measured speed and the speed assumed of it (px/s); the
+        zones measured faster than `zone_speed_bound`, and the updates that showed a zone
+        faster than it was assumed to move."""
         pusher = self.observations.pusher
         nearest = None if pusher is None else self.zones.nearest(pusher)
         if nearest is None:
             return {}
-        zone_id, distance, speed = nearest
+        zone_id, distance, speed, assumed = nearest
         return {"nearest_zone": zone_id,
                 "nearest_zone_gap_px": f"{distance - self.robot.pusher_radius:.1f}",
                 "nearest_zone_speed": f"{speed:.0f}",
-                "zones_over_speed_bound": ",".join(map(str, self.zones.motion.over_bound()))}
+                "nearest_zone_assumed_speed": f"{assumed:.0f}",
+                "zones_over_speed_bound": ",".join(map(str, self.zones.motion.over_bound())),
+                "zone_speed_exceeded": self.zones.motion.exceeded}
 
 
 def main(args: list[str] | None = None) -> int:

@@ -15,7 +15,7 @@ from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones.area import Bounds, RestrictedArea
 from constrained_diffusion_ros.zones.grid import DEFAULT_THRESHOLD, MaskCaps
 from constrained_diffusion_ros.zones.live import DEFAULT_MAX_VERTICES, DEFAULT_MAX_ZONES, LiveZones
-from constrained_diffusion_ros.zones.motion import DEFAULT_SPEED_BOUND
+from constrained_diffusion_ros.zones.motion import DEFAULT_SPEED_BOUND, HEADROOM
 from constrained_diffusion_ros.zones.plugins import load_area
 from msg_schemas.parameters import Param
 from msg_schemas.text import one_line
@@ -83,6 +83,10 @@ PARAMETERS = (
           "reacts (docs/moving_zones.md). A zone never seen moving stands still; one measured "
           "faster than this: WARN, the guarantee does not hold for it", read_only=True,
           low=0.0),
+    Param("zone_speed_headroom", HEADROOM, "a moving zone is assumed able to move at this many "
+          "times the fastest it was measured at between two updates (at least 50 px/s, at "
+          "most zone_speed_bound); 0: at zone_speed_bound, whatever it was measured at (the "
+          "ISO 13855 reading, the strictest and the slowest task)", read_only=True, low=0.0),
     Param("max_zones", DEFAULT_MAX_ZONES, "zones in force at most; more are refused",
           read_only=True, low=1),
     Param("max_vertices", DEFAULT_MAX_VERTICES, "vertices per zone at most", read_only=True,
@@ -141,7 +145,8 @@ def live_zones(values: dict, workspace: Bounds, reaction_s: float) -> LiveZones:
     if values["mode"] == "realtime" and values["planning_process"]:
         check_picklable(area, values["restricted_area"])
     return LiveZones(values["max_zones"], values["max_vertices"], area, workspace=workspace,
-                     speed_bound=values["zone_speed_bound"], reaction_s=reaction_s)
+                     speed_bound=values["zone_speed_bound"],
+                     speed_headroom=values["zone_speed_headroom"], reaction_s=reaction_s)
 
 
 def plug_in_area(spec: str, parameters: str, workspace: Bounds) -> RestrictedArea | None:

@@ -21,7 +21,7 @@ ZONE_CHECK_KEYS = ("zone_check_errors", "zone_check_failed", "zone_check_error",
 HEALTH_COUNTERS = ("violations", "unsound_setpoints", "zones_refused", "masks_refused",
                    "observations_refused", "late_steps", "planning_errors", "ticks_withheld",
                    "configuration_changes", "changes_refused", "zone_check_errors",
-                   "runs_restarted", "cornered_steps")
+                   "runs_restarted", "cornered_steps", "zone_speed_exceeded")
 
 
 class StatusReporter:
@@ -106,6 +106,10 @@ class StatusReporter:
             problems.append(f"zone(s) {values['zones_over_speed_bound']} move faster than "
                             f"zone_speed_bound: the separation guarantee does not hold for "
                             f"them")
+        if since["zone_speed_exceeded"]:
+            problems.append(f"{since['zone_speed_exceeded']} zone update(s) showed a zone "
+                            f"faster than it was assumed to move: the separation guarantee did "
+                            f"not hold for that update")
         if since["runs_restarted"]:
             problems.append(f"{since['runs_restarted']} new run(s): an observation stamped no "
                             f"later than the last (a reset, or a participant sending old "

@@ -7,7 +7,8 @@ are also re-sent at `rate_hz` (0: publish once and rely on the latching).
 A moving scenario is recomputed for the sim's current control step: with `follow_sim_time` the
 step is read from the stamp of `pusher` (stamp * 10) and the zone is published whenever a
 new sim step is seen, so a lockstep trial sees the same zone positions however fast it runs;
-without it the step is the wall time since start * 10.
+without it the step is the wall time since start * 10. A zone that homes on the pusher (a
+scenario with `home_s`, such as hand_homing@100) heads for the pusher as `pusher` reports it.
 
 Examples:
   zone_publisher --ros-args -p scenario:=center_0.2
@@ -28,6 +29,7 @@ from nav_msgs.msg import OccupancyGrid
 from rclpy.node import Node
 
 from constrained_diffusion_ros.evaluation.scenarios import Scenario, load_scenarios
+from constrained_diffusion_ros.evaluation.zone_paths import ZoneMover
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones import rasterize, validate_polygon
 from constrained_diffusion_ros.zones.grid import MaskCaps
@@ -131,7 +133,10 @@ class ZonePublisher(Node):
         self.step = 0
         self.sim_time: Time | None = None  # stamp of the sim step last seen
         self.start = self.get_clock().now()
-        if self.follow:
+        homes = self.scenario is not None and self.scenario.homes
+        self.mover = ZoneMover(self.scenario.motion, self.scenario.centroid, 1) if homes else None
+        self.pusher: np.ndarray | None = None  # where the sim last said the pusher is
+        if self.follow or homes:
             pusher = TOPICS["pusher"]
             self.create_subscription(PointStamped, pusher.name, self.on_pusher,
                                      qos_profile(pusher))
@@ -153,7 +158,7 @@ class ZonePublisher(Node):
         if self.scenario is not None and self.grid_resolution > 0:
             self.grid_pub.publish(self.keepout_mask(stamp))
         elif self.scenario is not None:
-            for zone_id, vertices in zip(self.scenario_ids, self.scenario.polygons_at(self.step)):
+            for zone_id, vertices in zip(self.scenario_ids, self.polygons()):
                 self.pub.publish(zone_message(zone_id, vertices, stamp))
         if self.adhoc is not None:
             self.pub.publish(zone_message(*self.adhoc, stamp))
@@ -165,12 +170,22 @@ class ZonePublisher(Node):
         x_min, y_min, x_max, y_max = PUSHT_ROBOT.workspace
         cells = (int(np.ceil((x_max - x_min) / self.grid_resolution)),
                  int(np.ceil((y_max - y_min) / self.grid_resolution)))
-        values = rasterize(self.scenario.polygons_at(self.step), self.grid_resolution,
+        values = rasterize(self.polygons(), self.grid_resolution,
                            (x_min, y_min), *cells)
         return occupancy_grid(values, self.grid_resolution, (x_min, y_min), stamp)
 
+    def polygons(self) -> list[np.ndarray]:
+        """The scenario's zones at the current step (a homing one: headed for the pusher as
+        last reported; where its path puts it until a pusher is)."""
+        if self.mover is None or self.pusher is None:
+            return self.scenario.polygons_at(self.step)
+        return self.scenario.polygons_at(self.step, self.mover.at(self.step, self.pusher[None])[0])
+
     def on_pusher(self, msg: PointStamped) -> None:
         """A new sim step (stamp = step / 10 s; a reset goes back to 0): move the zones there."""
+        self.pusher = np.array([msg.point.x, msg.point.y])
+        if not self.follow:
+            return
         step = step_of_stamp(msg.header.stamp, CONTROL_HZ)
         if self.sim_time is not None and step == self.step:
             return  # the sim re-sent an observation it already published

@@ -105,6 +105,9 @@ class PusherShield:
         self.cornered_steps = 0  # calls that left a row cornered (kept over resets: a count)
         self.reach = (path[:, 2].abs().max(), path[:, 1].abs().max())
         self.margin, self.escape, self.slide = margin, escape, slide
+        x_min, y_min, x_max, y_max = robot.workspace  # where a retreat may send the pusher
+        self.low = torch.tensor([x_min, y_min], dtype=torch.float64)
+        self.high = torch.tensor([x_max, y_max], dtype=torch.float64)
         # The inflated area's arcs are chords, up to radius * BUFFER_SAG inside the true disc's
         # reach: the check asks that much more, so the margin holds against the true zone.
         self.clearance = margin + robot.pusher_radius * BUFFER_SAG
@@ -309,6 +312,7 @@ class PusherShield:
                 trapped = torch.nonzero(stuck & (area.reach() > 0)).flatten()
                 if len(trapped):
                     candidates = torch.cat([candidates, escape[:, None]], dim=1)[trapped]
+                    candidates = torch.maximum(torch.minimum(candidates, self.high), self.low)
                     margin = self._margin(area.select_rows(trapped), p[trapped], v[trapped],
                                           candidates)
                     fallback[trapped] = candidates[torch.arange(len(trapped)),
@@ -327,7 +331,7 @@ class PusherShield:
         radii = reach[:, None] * torch.tensor(RETREAT_REACHES, dtype=torch.float64) + RETREAT_PX
         unit = self.ring[-DIRECTIONS:]  # the ring's outer circle: unit directions
         points = p[:, None, None] + radii[:, :, None, None] * unit[None, None]
-        points = points.reshape(len(p), -1, 2)
+        points = torch.maximum(torch.minimum(points.reshape(len(p), -1, 2), self.high), self.low)
         return [torch.where((reach > 0)[:, None, None], points, goal[:, None])]
 
     def _brakes(self, p: Tensor, v: Tensor, start: Tensor) -> Tensor:

@@ -14,7 +14,12 @@ from numpy.typing import ArrayLike
 
 from constrained_diffusion_ros.zones.area import AreaUnion, Bounds, RestrictedArea
 from constrained_diffusion_ros.zones.geometry import ZoneSet, validate_polygon
-from constrained_diffusion_ros.zones.motion import DEFAULT_SPEED_BOUND, MovingZones, ZoneMotion
+from constrained_diffusion_ros.zones.motion import (
+    DEFAULT_SPEED_BOUND,
+    HEADROOM,
+    MovingZones,
+    ZoneMotion,
+)
 
 ZoneId = str | int
 
@@ -84,10 +89,11 @@ class LiveZones:
     def __init__(self, max_zones: int = DEFAULT_MAX_ZONES,
                  max_vertices: int = DEFAULT_MAX_VERTICES,
                  fixed: RestrictedArea | None = None, workspace: Bounds | None = None,
-                 speed_bound: float = DEFAULT_SPEED_BOUND,
+                 speed_bound: float = DEFAULT_SPEED_BOUND, speed_headroom: float = HEADROOM,
                  reaction_s: float = DEFAULT_REACTION_S) -> None:
         self.max_zones, self.max_vertices = max_zones, max_vertices
-        self.motion = ZoneMotion(speed_bound)  # each id's velocity, from its stamped updates
+        # each id's velocity and the speed assumed of it, from its stamped updates
+        self.motion = ZoneMotion(speed_bound, headroom=speed_headroom)
         self.reaction_s = reaction_s  # what a moving zone's reach is sized by (MovingZones)
         # (snapshot, its zones that stand still with the fixed area, those that move)
         self._moving: tuple[ZoneSet, RestrictedArea, ZoneSet] | None = None
@@ -260,16 +266,18 @@ class LiveZones:
         with self._lock:
             return {zone_id: zone.vertices for zone_id, zone in self._zones.items()}
 
-    def nearest(self, point: ArrayLike) -> tuple[ZoneId, float, float] | None:
-        """(id, distance in px, speed to assume in px/s) of the zone nearest `point` (distance
-        0 inside it), or None without zones: how close a moving zone is, for the status."""
+    def nearest(self, point: ArrayLike) -> tuple[ZoneId, float, float, float] | None:
+        """(id, distance in px, measured speed and speed assumed of it in px/s) of the zone
+        nearest `point` (distance 0 inside it), or None without zones: how close a moving zone
+        is, for the status."""
         where = shapely.Point(*np.asarray(point, dtype=float))
         with self._lock:
             if not self._zones:
                 return None
             zone_id, zone = min(self._zones.items(),
                                 key=lambda item: item[1].polygon.distance(where))
-            return zone_id, float(zone.polygon.distance(where)), self.motion.speed(zone_id)
+            return (zone_id, float(zone.polygon.distance(where)), self.motion.speed(zone_id),
+                    self.motion.assumed_speed(zone_id))
 
     @property
     def ids(self) -> list[ZoneId]:

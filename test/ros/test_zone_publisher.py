@@ -23,11 +23,13 @@ def test_zone_publisher_latched_scenario_and_moving_zone(ros, sim, processes):
                     scenario="two_zones", first_id=5, rate_hz=0.0)
     processes.start("zones_moving", "zone_publisher",
                     scenario="moving_hand", first_id=20, rate_hz=0.0, follow_sim_time=True)
+    processes.start("zones_homing", "zone_publisher",
+                    scenario="hand_homing@200", first_id=30, rate_hz=0.0, follow_sim_time=True)
     bad, bad_log = processes.start("zones_bad", "zone_publisher",
                                    polygon="0,0;10,10;20,20")
     topic = TOPICS["zones"].name
     # Both publishers exist (and have published: they do so on creation) before we subscribe.
-    assert ros.spin_until(lambda: ros.node.count_publishers(topic) >= 2)
+    assert ros.spin_until(lambda: ros.node.count_publishers(topic) >= 3)
     zones = ros.inbox("zones", PolygonInstanceStamped)
     assert ros.spin_until(lambda: {5, 6} <= {m.polygon.id for m in zones})
     static = {m.polygon.id: m for m in zones if m.polygon.id in (5, 6)}
@@ -53,6 +55,20 @@ def test_zone_publisher_latched_scenario_and_moving_zone(ros, sim, processes):
     points = [(p.x, p.y) for p in message.polygon.polygon.points]
     assert np.allclose(points, moving.polygons_at(last // step_ns(1))[0], atol=1e-3)
     assert not np.allclose(points, moving.polygons_at(0)[0], atol=1e-3)
+
+    # The homing hand waits 1 s where it is drawn, then heads for the pusher at 200 px/s.
+    homing = scenarios["hand_homing@200"]
+    for _ in range(12):
+        sim.send(256.0, 256.0)
+        sim.wait_new_stamps(sim.stamps(), 1)
+    last, point = sim.stamps()[-1], sim.latest().point
+    pusher = np.array([point.x, point.y])
+    assert ros.spin_until(lambda: any(
+        m.polygon.id == 30 and stamp_ns(m.header.stamp) == last for m in zones))
+    message = next(m for m in zones if m.polygon.id == 30 and stamp_ns(m.header.stamp) == last)
+    centroid = np.mean([(p.x, p.y) for p in message.polygon.polygon.points], axis=0)
+    drawn = np.linalg.norm(homing.centroid - pusher)
+    assert drawn - np.linalg.norm(centroid - pusher) > 50  # 0.5 s at 200 px/s, at least
 
     assert bad.wait(timeout=20) != 0
     log = bad_log.read_text()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -13,6 +14,7 @@ from constrained_diffusion_ros.zones.motion import (
     FLOOR,
     HEADROOM,
     MAX_GAP_S,
+    MovingZones,
     ZoneMotion,
 )
 
@@ -89,8 +91,9 @@ def test_the_live_zones_measure_a_republished_zone_and_forget_one_that_goes() ->
     for k in range(5):  # 100 px/s to the right, republished at 10 Hz with its stamp
         zones.upsert(3, square(100 + 10 * k, 100), now=0.1 * k + 0.01, stamp=0.1 * k)
     assert zones.motion.speed(3) == pytest.approx(100.0)
-    zone_id, distance, speed = zones.nearest((160.0, 300.0))  # below its 140..190 x 100..150
+    zone_id, distance, speed, assumed = zones.nearest((160.0, 300.0))  # below 140..190 x 100..150
     assert zone_id == 3 and distance == pytest.approx(150.0) and speed == pytest.approx(100.0)
+    assert assumed == pytest.approx(HEADROOM * 100.0)
     assert zones.nearest((170.0, 120.0))[1] == 0.0  # inside
     zones.upsert(3, [], now=1.0)
     assert not zones.motion.measured(3) and zones.nearest((0.0, 0.0)) is None
@@ -100,3 +103,28 @@ def test_the_live_zones_measure_a_republished_zone_and_forget_one_that_goes() ->
     assert zones.motion.speed(4) == pytest.approx(200.0)
     zones.clear()
     assert zones.motion.speed(4) == 0.0 and not zones.motion.moving(4)
+
+
+def test_the_live_zones_hand_a_shield_the_moving_ones_apart_and_aged() -> None:
+    """A zone republished in place stays a plain zone; one that moves comes as `MovingZones`,
+    its reach growing with the time since it was where it is (its stamp's age on arrival
+    included) and with the robot's reaction, and every other query answering for the zones as
+    they are."""
+    zones = LiveZones(speed_bound=300.0, reaction_s=0.4)
+    for k in range(3):
+        zones.upsert("still", square(300, 300), now=100.0 + 0.1 * k, stamp=100.0 + 0.1 * k)
+    assert not isinstance(zones.area_at(0), MovingZones)
+    for k in range(3):  # 100 px/s, each update 0.05 s old when it arrives
+        zones.upsert("hand", square(100 + 10 * k, 100), now=100.05 + 0.1 * k,
+                     stamp=100.0 + 0.1 * k)
+    area = zones.area_at(0)
+    assert isinstance(area, MovingZones) and float(area.speed) == pytest.approx(150.0)
+    assert 0.05 <= float(area.age_s) < 0.5
+    grown = float(area.reach())
+    assert grown == pytest.approx(150.0 * (float(area.age_s) + 0.4))
+    # 30 px right of the hand (last at x 120..170), 10 px below the still zone
+    probe = torch.tensor([[200.0, 125.0], [325.0, 360.0]])
+    now, later = area.signed_distance(probe), area.signed_distance_after(probe, 0.4)
+    assert now.tolist() == pytest.approx([30.0, 10.0])
+    assert later[0] == pytest.approx(30.0 - grown, abs=1e-3) and later[1] == pytest.approx(10.0)
+    assert area.contains(torch.tensor([[130.0, 120.0]])).item()  # the hand as it is

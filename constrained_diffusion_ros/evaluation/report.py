@@ -46,6 +46,9 @@ def details_table(cells: Sequence[CellResult]) -> str:
                "success_ci", "r", "r_ci", "r_body", "r_body_outside_starts", "path_crossings",
                "starts_inside", "interventions", "intervention_px", "standstill_steps",
                "ms_per_chunk"]
+    if any(cell.contact_steps is not None for cell in cells):  # zones that move
+        columns[-1:-1] = ["contact_steps", "avoidable_contact_steps",
+                          "unavoidable_contact_steps", "min_separation", "mean_min_separation"]
     lines = ["| " + " | ".join(columns) + " |", "|" + " --- |" * len(columns)]
     for cell in cells:
         values = cell.to_dict()

@@ -34,7 +34,8 @@ bench: $(STAMP)
 	$(BIN)/python scripts/bench_clock.py  # idle, then with a load it starts itself
 	$(BIN)/python scripts/bench_realtime.py  # idle, then with a load it starts itself
 
-# Table I's protocol (25 scenes) for every row, then our main rows on 100 scenes beside it.
+# Table I's protocol (25 scenes) for every row, then our main rows on 100 scenes beside it,
+# then the zones that move (hands) on 100 scenes, body-safe beside unconstrained.
 HUNDRED_SEED_ROWS ?= none r_g10 ddim10_none ddim10_r_g10_p ddim10_r_g10_p_safe
 # The main report's scenarios; the small-obstacle ones have a report of their own
 # (docs/body_safe_sliding.md names its command).
@@ -44,6 +45,8 @@ evaluation: $(STAMP)
 	$(BIN)/evaluate --scenarios $(REPORT_SCENARIOS) --output docs/evaluation
 	$(BIN)/evaluate --episodes 100 --scenarios paper --configs $(HUNDRED_SEED_ROWS) \
 		--output docs/evaluation_100
+	$(BIN)/evaluate --episodes 100 --scenarios moving --configs ddim10_none \
+		ddim10_r_g10_p_safe --output docs/evaluation_moving
 
 clean-venv:
 	rm -rf $(VENV)

@@ -23,9 +23,25 @@ the policy run, drop a square zone on the waypoints the plan in force is about t
   - the time from publishing a zone to the next plan the client receives, and, as the node
     counts it (`replan_latency_ms`), from its zone callback to the first plan installed that
     was planned with the zone;
-then a 1 kHz zone flood (zones in force = last message per id how soon after it ends; the period
-p99 against the same run without a flood), and `trial` under load. "loaded" means one busy
-process per `--load` core, started and stopped by this script. Prints; asserts nothing.
+then moving-zone trials (`moving_trials.py`; `--no-moving` skips them), with the first
+configuration whose name ends in `_safe` (the shield): on the same scenes, after the warm-up, a
+60 px square zone of one id, republished at 20 Hz stamped with the client's clock, moving at each
+`--moving-speeds` (100 and 200 px/s), then removed (an empty polygon for its id):
+  - crossing: straight across the pusher's position (a random heading and a sideways offset of
+    up to half a side per scene), from 150 px before it to 150 px past it;
+  - homing: from 150 px away (a random direction per scene), heading for the pusher's latest
+    observed position for 3 s, then straight away from it for 1 s;
+and prints per kind and speed, from what the client observes (the pusher as the sim reports it,
+setpoints as received, the zone as it was published then): the trials with contact (the disc
+overlapping the zone), the contact steps, avoidable or not (`runner.unavoidable`: no setpoint
+one step before could have kept the disc out), the deepest overlap, the least separation
+(centre to zone less the radius: min and median over trials), setpoints in the zone as published
+30 ms before they were received, the rise of the node's `cornered_steps` and
+`zone_speed_exceeded`, and the longest standstill (under 1 px a step) with the zone within
+100 px (a stopped robot is not an answer). Then a 1 kHz zone flood (zones in force = last
+message per id how soon after it ends; the period p99 against the same run without a flood),
+and `trial` under load. "loaded" means one busy process per `--load` core, started and stopped
+by this script. Prints; asserts nothing.
 
   scripts/bench_realtime.py --trials 20
 """
@@ -48,6 +64,12 @@ from typing import NamedTuple
 
 import numpy as np
 import shapely
+from moving_trials import (
+    add_moving_arguments,
+    moving_configuration,
+    report_moving,
+    run_moving_trials,
+)
 
 from constrained_diffusion_ros.evaluation.launcher import (
     NodeProcesses,
@@ -105,6 +127,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "during the trials (the reaction measured under a flood); 0: none")
     parser.add_argument("--trial-flood-vertices", type=int, default=4,
                         help="vertices of each flooding zone (64, the cap: a fuzz at the caps)")
+    add_moving_arguments(parser)
     parser.add_argument("--no-trial", action="store_true",
                         help="skip running `trial` in the loaded condition")
     parser.add_argument("--log-dir", default=None, help="node logs (default: a temporary one)")
@@ -353,8 +376,9 @@ def periods_between(client: Client, start: float, stop: float) -> tuple[list[flo
             list(np.diff([s.sent for s in chosen])))
 
 
-def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
-              result: Condition) -> None:
+def start_scene(client: Client, seed: int) -> float:
+    """Reset the sim to `seed` and wait for a plan of the new scene (not one the node was still
+    planning for the last); when the wait for the plan began (time.monotonic())."""
     last, seen = (client.pushers[-1][1] if client.pushers else 0), len(client.pushers)
     client.reset_to(seed)
     # Until the node sees the new scene it may still install (and publish) a plan of the last
@@ -367,6 +391,12 @@ def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
     client.spin_until(lambda: client.plan is not None and client.plan_time > begin
                       and client.setpoints and client.setpoints[-1].received > begin,
                       60.0, "a plan after the reset")
+    return begin
+
+
+def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
+              result: Condition) -> None:
+    begin = start_scene(client, seed)
     client.spin_for(args.warmup)
     for _ in range(LOOKS):  # the pusher may be held or near the plan's end: look again
         held = client.setpoints[-1].point
@@ -718,6 +748,9 @@ def run_condition(args: argparse.Namespace, loaded: bool) -> None:
                                   for key in ("standstill_steps", "standstill_longest_s"))
                       + "; while waiting for a plan: standstill_waiting_steps "
                       + str(client.status.get("standstill_waiting_steps", "?")))
+                if configuration == moving_configuration(args):
+                    report_moving(configuration,
+                                  run_moving_trials(client, args, FIRST_SEED, start_scene))
                 if index == 0 and args.flood_hz > 0:
                     flood(client, args)
             finally:
@@ -736,8 +769,10 @@ def run_condition(args: argparse.Namespace, loaded: bool) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    if args.trials < 1 or args.rate_hz <= 0:
-        print("bench_realtime: --trials and --rate-hz must be positive", file=sys.stderr)
+    if args.trials < 1 or args.rate_hz <= 0 or (args.moving_trials or 1) < 1 \
+            or min(args.moving_speeds) <= 0:
+        print("bench_realtime: --trials, --moving-trials, --moving-speeds and --rate-hz must be "
+              "positive", file=sys.stderr)
         return 2
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, signal.default_int_handler)

@@ -24,6 +24,14 @@ did (it stops the pusher where the line grazes a zone).
 The last accepted setpoint was itself checked from the previous state and is a candidate, so a
 safe choice exists as long as the zones do not change under the pusher (a shield in the sense
 of safe reinforcement learning).
+
+A zone that moves (`zones.motion.MovingZones`) is checked as it may be when the pusher gets to
+each point of a path: grown by its assumed speed times its age and the time to that point, up
+to the robot's reaction time (ISO/TS 15066's separation). The candidates then also hold
+retreats, points around the pusher at one and two such reaches, so that the pusher gives way
+early instead of waiting at the zone's edge; where none is safe (a wall behind it, zones all
+round) it is `cornered`, takes the candidate kept farthest from what the zones may reach, and
+says so (docs/moving_zones.md).
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ Serves the scene over the Foxglove WebSocket protocol (foxglove-sdk): the walls 
 the T block, the pusher and its setpoint, the planned chunk, the zones in force with their ids
 (keep-out masks included) and, where the policy's configuration inflates them, the grown
 outline the planner keeps the pusher's centre out of; the score and the filter's state (held,
-shielded, no free space). In the app: "Open connection", Foxglove WebSocket,
+shielded, cornered, no free space). In the app: "Open connection", Foxglove WebSocket,
 ws://localhost:8765, then import the layout config/foxglove_layout.json.
 
 Zones from the app: a JSON message `{"id": 7, "polygon": [[x, y], ...]}` (px; [] removes the

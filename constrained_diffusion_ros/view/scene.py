@@ -66,7 +66,7 @@ class SceneState:
     score: float | None = None
     inflate_px: float = 0.0  # > 0: also outline the zones grown by this much (the planner's)
     pusher_radius: float = 15.0
-    filter_state: str = ""  # "held", "shielded", "no free space", or ""
+    filter_state: str = ""  # "held", "shielded", "cornered", "no free space", or ""
     policy_status: str = ""  # the policy node's diagnostic message
     refusal: str = ""  # why the last zone was refused (the view's or the policy's)
     policy_refusal: str = ""  # the policy node's last zone refusal
@@ -76,8 +76,8 @@ class SceneState:
 PARTS = {"pusher": ("pusher", point_of), "setpoint": ("setpoint", point_of),
          "block_pose": ("block_pose", pose2d_of), "plan": ("plan", path_of),
          "zones": ("zone_markers", zone_outlines_of), "score": ("score", lambda m: float(m.data))}
-FILTER_STATES = (("no_free_space", "no free space"), ("holding", "held"),
-                 ("shielded", "shielded"))
+FILTER_STATES = (("no_free_space", "no free space"), ("cornered", "cornered"),
+                 ("holding", "held"), ("shielded", "shielded"))
 
 
 def take_policy_status(state: SceneState, message: str, values: dict[str, str],

@@ -97,6 +97,8 @@ def test_the_policy_status_sets_the_filter_state_inflation_and_a_new_refusal() -
     state.refusal = "zone 4: the view's own, newer"
     take_policy_status(state, "running", values, set())  # the same refusal: not news
     assert state.refusal == "zone 4: the view's own, newer" and state.inflate_px == 0.0
+    take_policy_status(state, "cornered: ...", {**values, "cornered": "True"}, set())
+    assert state.filter_state == "cornered, shielded"
 
 
 def test_a_recording_replays_as_one_scene_frame_per_pusher_message(tmp_path) -> None:

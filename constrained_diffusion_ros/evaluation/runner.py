@@ -68,8 +68,8 @@ class CellResult:
     standstill_steps: float | None = None
     # Moving zones (None for static ones): steps whose disc overlaps a zone, per episode;
     # those counted in all episodes that a setpoint could have avoided and those it could not
-    # (`unavoidable`); the least disc-to-zone gap over the episodes (px, negative: overlap)
-    # and its mean per episode.
+    # (`unavoidable`, or a disc that started in the zone and is not yet out); the least
+    # disc-to-zone gap over the episodes (px, negative: overlap) and its mean per episode.
     contact_steps: float | None = None
     avoidable_contact_steps: int | None = None
     unavoidable_contact_steps: int | None = None
@@ -150,8 +150,10 @@ def cell_metrics(log: RolloutLog, rows: np.ndarray, scenario: Scenario) -> dict[
                     "standstill_steps": float(standstills(moved, near).sum(axis=1).mean())}
     motion = {}
     if scenario.moving:
-        forced = np.zeros_like(body)
-        for episode, step in zip(*np.nonzero(body)):
+        # A disc that starts in a zone cannot leave it at once: its first contact steps, until
+        # it is first out, are unavoidable (the zone was put on it).
+        forced = started_inside[:, None] & (np.cumsum(~body, axis=1) == 0)
+        for episode, step in zip(*np.nonzero(body & ~forced)):
             later = zones[min(step + 1, n_steps - 1)]
             forced[episode, step] = unavoidable(
                 pusher[episode:episode + 1, step],

@@ -242,9 +242,13 @@ class ScenarioZones:
                 still.append(areas[-1])
                 moving.append(ZoneSet.empty())
         speed = torch.from_numpy(assumed_speeds(self.moved, self.fastest, self.speed_bound))
-        return MovingZones(*(EpisodeZones(parts, self.scenario_of_row)
-                             for parts in (areas, still, moving)),
-                           speed, 0.0, PUSHT_ROBOT.reaction_s)
+        # measured as a tracker at the control rate would: the last step's displacement
+        velocity = (self.offsets[step] - self.offsets.get(step - 1, self.offsets[step])) \
+            * PUSHT_ROBOT.control_hz
+        area, still, moving = (EpisodeZones(parts, self.scenario_of_row)
+                               for parts in (areas, still, moving))
+        return MovingZones(area, still, moving, speed, 0.0, PUSHT_ROBOT.reaction_s,
+                           drift=[(moving, torch.from_numpy(velocity))])
 
     def version_at(self, step: int) -> np.ndarray:
         return np.where(self.moving, step, 0)

@@ -114,6 +114,19 @@ class ConstrainedPlanner:
             radius = self.robot.pusher_radius if self.config.inflate else 0.0
         return zones.bounded(self.robot.workspace).inflate(radius)
 
+    def planning_area(self, zones: RestrictedArea) -> RestrictedArea:
+        """The area the hooks steer a chunk against: `effective_area`, with zones that move
+        forecast to where they will be when each waypoint runs (`MovingZones.ahead`;
+        waypoint `first_executed` runs at the observation, one more each control step)."""
+        area = self.effective_area(zones)
+        ahead = getattr(area, "ahead", None)
+        if ahead is None:
+            return area
+        config = self.policy.config
+        steps = (torch.arange(config.horizon, dtype=torch.float64)
+                 - config.first_executed).clamp_min(0.0)
+        return ahead(steps / self.robot.control_hz)
+
     def hooks(self, area: RestrictedArea, pusher: Tensor) -> list[SampleHook]:
         c, first = self.config, self.policy.config.first_executed
         guidance: list[SampleHook] = []
@@ -140,7 +153,7 @@ class ConstrainedPlanner:
         first: list[SampleHook] = [] if prefix is None else [prefix]
         if zones is None or not self.config.constrains:
             return self.sampler.sample(observations, generator, first)
-        area = self.effective_area(zones)
+        area = self.planning_area(zones)
         if self.config.from_scratch:
             return self._from_scratch(observations, area, generator)
         if self.config.candidates > 1:
@@ -196,7 +209,7 @@ class ConstrainedPlanner:
         own plan least disagrees with the zones (ties: the first)."""
         k, batch = self.config.candidates, len(observations)
         rows = torch.arange(batch).repeat_interleave(k)
-        area = self.effective_area(zones.select_rows(rows))
+        area = self.planning_area(zones.select_rows(rows))
         hooks = self.hooks(area, self.robot.pusher(observations[rows, -1]))
         steering = [h for h in hooks if not isinstance(h, FinalProjection | PathRepair)]
         last = LastUpdate()
@@ -217,9 +230,8 @@ class ConstrainedPlanner:
         repeated = observations[:, None].expand(batch, n, *rest).reshape(batch * n, *rest)
         chunks = self.sampler.sample(repeated, generator).reshape(batch, n, -1, 2)
         first = self.policy.config.first_executed
-        executed = chunks[:, :, first: first + self.policy.config.n_action_steps]
-        candidates = executed.reshape(batch, -1, 2)
-        inside = area.contains(candidates).reshape(batch, n, -1).sum(dim=-1)
+        executed = slice(first, first + self.policy.config.n_action_steps)
+        inside = area.contains(chunks)[:, :, executed].sum(dim=-1)  # (batch, n)
         # Fewest violations; ties go to the earliest candidate ("the first that fits").
         order = inside * n + torch.arange(n)
         chosen = chunks[torch.arange(batch), order.argmin(dim=1)]
@@ -260,7 +272,7 @@ class MixedPlanner:
             return self.planners[0].plan(observations, zones, rows, generator, prefix)
         hooks: list[SampleHook] = [] if prefix is None else [prefix]
         for planner, mine in self._by_config(rows) if zones is not None else ():
-            area = planner.effective_area(zones.select_rows(mine))
+            area = planner.planning_area(zones.select_rows(mine))
             pusher = self.robot.pusher(observations[mine, -1])
             mine_rows = torch.from_numpy(mine)
             hooks += [OnRows(hook, mine_rows) for hook in planner.hooks(area, pusher)]

@@ -244,9 +244,11 @@ class PusherShield:
         return self._margin(area, p, v, candidates, held, path) >= 0
 
     def _margin(self, area: RestrictedArea, p: Tensor, v: Tensor, candidates: Tensor,
-                held: Tensor | None = None, path: Path | None = None) -> Tensor:
+                held: Tensor | None = None, path: Path | None = None,
+                after_s: float = 0.0) -> Tensor:
         """(N, F) the least clearance beyond the required one along each candidate's paths
-        (`_safe`): negative where it is not safe."""
+        (`_safe`), over the points `after_s` or more from now: negative where it is not
+        safe."""
         coefficients, seconds = self.path if path is None else path
         a, b, c = coefficients.unbind(-1)
         starts = [0.0]
@@ -265,6 +267,7 @@ class PusherShield:
         when = (torch.tensor(starts, dtype=torch.float64)[:, None] + seconds[None])
         when = when.expand(n_candidates, *when.shape).reshape(1, -1)
         clearance = area.near(paths, self.clearance).signed_distance_after(paths, when)
+        clearance = torch.where(when >= after_s, clearance, torch.inf)
         return clearance.reshape(count, n_candidates, -1).amin(dim=-1) - self.clearance
 
     def _choose(self, area: RestrictedArea, p: Tensor, v: Tensor, held: Tensor,
@@ -311,8 +314,10 @@ class PusherShield:
             fallback = candidates[rows, safe.float().argmax(dim=1)]
         # No safe candidate (it started inside, or a zone moved onto it): head for the nearest
         # point `escape` px clear, so a zone still coming does not catch it at once. Cornered
-        # by a moving zone (no free space to retreat into): the candidate whose paths keep
-        # farthest from what the zones may reach, the separation as large as it can be.
+        # by a moving zone (no free space to retreat into): the candidate whose path keeps
+        # farthest from what the zones may reach, the separation as large as it can be, after
+        # the first control step (where the pusher is then, no setpoint changes much: a zone
+        # already that close would tie them all).
         if stuck.any():  # the area may be batch-aware (row b, zones b): query every row
             escape = area.project_out(p.float(), self.escape).double()
             fallback = torch.where(stuck[:, None], escape, fallback)
@@ -322,7 +327,7 @@ class PusherShield:
                     candidates = torch.cat([candidates, escape[:, None]], dim=1)[trapped]
                     candidates = torch.maximum(torch.minimum(candidates, self.high), self.low)
                     margin = self._margin(area.select_rows(trapped), p[trapped], v[trapped],
-                                          candidates)
+                                          candidates, after_s=self.tick_s)
                     fallback[trapped] = candidates[torch.arange(len(trapped)),
                                                    margin.argmax(dim=1)]
                     cornered[blocked[trapped]] = True

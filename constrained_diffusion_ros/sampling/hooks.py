@@ -117,12 +117,16 @@ class PathRepair:
         if step.index != step.total - 1 and step.progress < self.from_progress:
             return sample
         head, path = sample[:, : self.first_index], sample[:, self.first_index:]
+        # Zones that move are forecast per waypoint (`zones.motion.Forecast`): segment k is
+        # checked against them as they will be when waypoint k runs.
+        columns = getattr(self.area, "columns", None)
+        area = columns(self.first_index) if columns is not None else self.area
         for _ in range(path.shape[1]):
             starts = torch.cat([self.start[:, None].to(path), path[:, :-1]], dim=1)
-            clear = self.area.segment_clear_fraction(starts, path)
+            clear = area.segment_clear_fraction(starts, path)
             # A segment that ends on the boundary is clear all the way, yet its end may test
             # inside (points on the boundary test either way): that counts as entering too.
-            entering = ((clear < 1.0) | self.area.contains(path)) & ~self.area.contains(starts)
+            entering = ((clear < 1.0) | area.contains(path)) & ~area.contains(starts)
             if not entering.any():
                 break
             first = entering.float().argmax(dim=1)  # first entering segment per episode
@@ -133,19 +137,21 @@ class PathRepair:
             keep = (clear[rows, cols] - self.margin / length).clamp_min(0.0)
             repaired = seg_start + keep[:, None] * (seg_end - seg_start)
             if self.slide:
-                repaired = self._around(rows, seg_start, seg_end, repaired)
+                repaired = self._around(area, rows, cols, seg_start, seg_end, repaired)
             path = path.clone()
             path[rows, cols] = repaired.to(path)
         return torch.cat([head, path], dim=1)
 
-    def _around(self, rows: Tensor, seg_start: Tensor, seg_end: Tensor,
-                pulled_back: Tensor) -> Tensor:
+    def _around(self, area: RestrictedArea, rows: Tensor, cols: Tensor, seg_start: Tensor,
+                seg_end: Tensor, pulled_back: Tensor) -> Tensor:
         """(R, 2) the step turned as little as it must be for its segment to be free and its
         end `margin` outside (its length kept if it can be, else shortened), so the path turns
         along the zone's side and goes on; the pulled-back point where no turn is free. Nearest
         to the waypoint would park the path on the zone's face, from where no straight segment
         gets around."""
-        area = self.area.select_rows(rows)
+        area = area.select_rows(rows)
+        if hasattr(area, "at"):  # a forecast: each row's segment at its waypoint's moment
+            area = area.at(cols)
         begin = seg_start.to(torch.float64)
         step = seg_end.to(torch.float64) - begin
         turned = torch.einsum("kij,rj->rki", _TURNS.to(step), step)  # (R, K, 2)

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import shapely
+import torch
 from numpy.typing import ArrayLike
 
 from constrained_diffusion_ros.zones.area import AreaUnion, Bounds, RestrictedArea
@@ -95,8 +96,9 @@ class LiveZones:
         # each id's velocity and the speed assumed of it, from its stamped updates
         self.motion = ZoneMotion(speed_bound, headroom=speed_headroom)
         self.reaction_s = reaction_s  # what a moving zone's reach is sized by (MovingZones)
-        # (snapshot, its zones that stand still with the fixed area, those that move)
-        self._moving: tuple[ZoneSet, RestrictedArea, ZoneSet] | None = None
+        # (snapshot, its zones that stand still with the fixed area, those that move, and
+        # each of those by id)
+        self._moving: tuple[ZoneSet, RestrictedArea, ZoneSet, dict] | None = None
         self.workspace = workspace  # zones are clipped to it, so what is accepted is enforced
         self.fixed = fixed  # always in force besides the zones (a plug-in check)
         self._union: tuple[ZoneSet, RestrictedArea] | None = None
@@ -236,15 +238,13 @@ class LiveZones:
         moving = self._moving_zones(snapshot)
         if area is None or moving is None:
             return area
-        still, zones, seen_at, speed = moving
-        return MovingZones(area, still, zones, speed, max(0.0, time.monotonic() - seen_at),
-                           self.reaction_s)
+        return MovingZones(area, reaction_s=self.reaction_s, **moving)
 
-    def _moving_zones(self, snapshot: ZoneSet
-                      ) -> tuple[RestrictedArea, ZoneSet, float, float] | None:
-        """(the zones that stand still and the fixed area, the zones that move, when the one
-        seen longest ago was last seen where it is, the fastest speed assumed of them) for
-        `snapshot`, or None: none moves."""
+    def _moving_zones(self, snapshot: ZoneSet) -> dict | None:
+        """For `snapshot`, the keywords of `MovingZones` but the area: the zones that stand
+        still (with the fixed area) and those that move, the fastest speed assumed of them,
+        how long since the one seen longest ago was where it is, and each moving zone with
+        its measured velocity; None: none moves."""
         with self._lock:
             moving = [(i, z) for i, z in self._zones.items() if self.motion.moving(i)]
             if not moving:
@@ -254,9 +254,14 @@ class LiveZones:
                 still = ZoneSet(z.polygon for i, z in self._zones.items() if i not in ids)
                 if self.fixed is not None:
                     still = AreaUnion([self.fixed, still])
-                self._moving = (snapshot, still, ZoneSet(z.polygon for _, z in moving))
-            return (*self._moving[1:], min(z.seen_at for _, z in moving),
-                    max(self.motion.assumed_speed(i) for i, _ in moving))
+                parts = {i: ZoneSet([z.polygon]) for i, z in moving}
+                self._moving = (snapshot, still, ZoneSet(z.polygon for _, z in moving), parts)
+            _, still, zones, parts = self._moving
+            return {"still": still, "moving": zones,
+                    "speed": max(self.motion.assumed_speed(i) for i, _ in moving),
+                    "age_s": max(0.0, time.monotonic() - min(z.seen_at for _, z in moving)),
+                    "drift": [(parts[i], torch.from_numpy(self.motion.velocity(i)))
+                              for i, _ in moving]}
 
     def version_at(self, step: int) -> int:
         return self._version

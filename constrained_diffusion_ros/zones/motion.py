@@ -20,6 +20,7 @@ it is said, not trusted.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,7 +28,7 @@ import torch
 from numpy.typing import ArrayLike
 from torch import Tensor
 
-from constrained_diffusion_ros.zones.area import Bounds, RestrictedArea
+from constrained_diffusion_ros.zones.area import AreaUnion, Bounds, RestrictedArea, Translated
 
 # px/s: the speed assumed of a zone whose own is not measured, and the bound a measured one is
 # held to. 300 px/s covers the hands the package is checked against (50 to 300 px/s: at 100 px/s
@@ -159,11 +160,16 @@ class MovingZones(RestrictedArea):
     zone is taken no farther: a path is checked against what the zone can reach before the
     robot has reacted, its separation speed x (age + reaction), as ISO/TS 15066 sizes a
     protective separation distance; the shield checks again at every tick.
+
+    `drift` gives the moving zones one by one with their measured velocities (px/s, (2,) or
+    (B, 2) per row), for the plans: `ahead` forecasts where they will be.
     """
 
     def __init__(self, area: RestrictedArea, still: RestrictedArea, moving: RestrictedArea,
-                 speed: Tensor | float, age_s: Tensor | float, reaction_s: float) -> None:
+                 speed: Tensor | float, age_s: Tensor | float, reaction_s: float,
+                 drift: Sequence[tuple[RestrictedArea, Tensor]] = ()) -> None:
         self.area, self.still, self.moving = area, still, moving
+        self.drift = [(part, torch.as_tensor(v, dtype=torch.float64)) for part, v in drift]
         self.reaction_s = float(reaction_s)
         self.speed = torch.as_tensor(speed, dtype=torch.float64)
         self.age_s = torch.as_tensor(age_s, dtype=torch.float64)
@@ -173,6 +179,16 @@ class MovingZones(RestrictedArea):
         be `seconds` from now."""
         seconds = torch.as_tensor(seconds, dtype=torch.float64).clamp_max(self.reaction_s)
         return self.speed * (self.age_s + seconds)
+
+    def ahead(self, seconds: Tensor) -> RestrictedArea:
+        """The zones as they will be when each waypoint of a chunk runs, `seconds` (H,) from
+        the observation: each moving zone carried on at its measured velocity (`Forecast`);
+        the zones as they are where none is measured."""
+        if not self.drift:
+            return self.area
+        age = float(self.age_s.max()) if self.age_s.numel() else 0.0
+        return Forecast(self.still, self.drift, torch.as_tensor(seconds, dtype=torch.float64)
+                        + age)
 
     def signed_distance(self, points: Tensor) -> Tensor:
         return self.area.signed_distance(points)
@@ -205,18 +221,93 @@ class MovingZones(RestrictedArea):
             return value[rows] if value.dim() == 1 else value
         return MovingZones(self.area.select_rows(rows), self.still.select_rows(rows),
                            self.moving.select_rows(rows), pick(self.speed), pick(self.age_s),
-                           self.reaction_s)
+                           self.reaction_s, _drift_rows(self.drift, rows))
 
     def near(self, points: Tensor, reach: float) -> RestrictedArea:
         farthest = float(self.reach().max()) if self.speed.numel() else 0.0
         return MovingZones(self.area.near(points, reach), self.still.near(points, reach),
                            self.moving.near(points, reach + farthest), self.speed, self.age_s,
-                           self.reaction_s)
+                           self.reaction_s, self.drift)
 
     def _inflated(self, radius: float) -> RestrictedArea:
         return MovingZones(self.area.inflate(radius), self.still.inflate(radius),
-                           self.moving.inflate(radius), self.speed, self.age_s, self.reaction_s)
+                           self.moving.inflate(radius), self.speed, self.age_s, self.reaction_s,
+                           [(part.inflate(radius), v) for part, v in self.drift])
 
     def _bounded(self, workspace: Bounds) -> RestrictedArea:
         return MovingZones(self.area.bounded(workspace), self.still.bounded(workspace),
-                           self.moving, self.speed, self.age_s, self.reaction_s)
+                           self.moving, self.speed, self.age_s, self.reaction_s, self.drift)
+
+
+def _drift_rows(drift: list[tuple[RestrictedArea, Tensor]], rows: Tensor
+                ) -> list[tuple[RestrictedArea, Tensor]]:
+    """The moving zones and velocities of rows `rows` (a velocity per row, or one for all)."""
+    return [(part.select_rows(rows), v[rows] if v.dim() == 2 else v) for part, v in drift]
+
+
+class Forecast(RestrictedArea):
+    """Zones as they will be when each waypoint of a chunk runs: what the plans steer, project
+    and repair against, so that a chunk goes around where a hand will be, not where it was.
+
+    Queries are chunks (B, H, 2) (or (..., H, 2)): waypoint h is checked against the zones that
+    stand still and each moving zone carried on at its velocity for `seconds[h]`. `columns`
+    keeps the waypoints from one on (a path's segments), `at` gives one moment per row (for
+    points of any shape). A prediction, not a bound: the shield keeps the guarantee.
+    """
+
+    def __init__(self, still: RestrictedArea, drift: Sequence[tuple[RestrictedArea, Tensor]],
+                 seconds: Tensor) -> None:
+        self.still, self.drift, self.seconds = still, list(drift), seconds
+
+    def _offset(self, velocity: Tensor, points: Tensor) -> Tensor:
+        """(..., H, 2) how far a zone moving at `velocity` ((2,) or (B, 2)) has come by each
+        waypoint of `points` (..., H, 2)."""
+        if points.dim() < 2 or points.shape[-2] != len(self.seconds):
+            raise ValueError(f"a forecast answers for chunks of {len(self.seconds)} waypoints "
+                             f"(..., {len(self.seconds)}, 2), got {tuple(points.shape)}")
+        if velocity.dim() == 1:
+            return (self.seconds[:, None] * velocity).to(points.dtype)  # (H, 2)
+        shift = velocity[:, None, :] * self.seconds[None, :, None]  # per row: (B, H, 2)
+        return shift.reshape(len(velocity), *([1] * (points.dim() - 3)),
+                             *shift.shape[1:]).to(points.dtype)
+
+    def signed_distance(self, points: Tensor) -> Tensor:
+        points = torch.as_tensor(points)
+        distance = self.still.signed_distance(points)
+        for part, velocity in self.drift:
+            moved = part.signed_distance(points - self._offset(velocity, points))
+            distance = torch.minimum(distance, moved.to(distance.dtype))
+        return distance
+
+    def project_out(self, points: Tensor, margin: float = 0.0) -> Tensor:
+        """Waypoint by waypoint, each out of the zones of its moment."""
+        points = torch.as_tensor(points)
+        self._offset(torch.zeros(2, dtype=torch.float64), points)  # the shape, checked
+        return torch.stack([self._moment(float(t)).project_out(points[..., h, :], margin)
+                            for h, t in enumerate(self.seconds)], dim=-2)
+
+    def columns(self, start: int) -> Forecast:
+        """The forecast for the waypoints from `start` on."""
+        return Forecast(self.still, self.drift, self.seconds[start:])
+
+    def at(self, column: Tensor) -> RestrictedArea:
+        """Row r's zones at the moment of its waypoint `column[r]` (R,), for points (R, ..., 2)
+        of any shape."""
+        seconds = self.seconds[torch.as_tensor(column)]  # (R,)
+        return AreaUnion([self.still] + [
+            Translated(part, (v if v.dim() == 2 else v[None]) * seconds[:, None])
+            for part, v in self.drift])
+
+    def _moment(self, seconds: float) -> RestrictedArea:
+        return AreaUnion([self.still] + [Translated(part, v * seconds) for part, v in self.drift])
+
+    def select_rows(self, rows: Tensor) -> RestrictedArea:
+        return Forecast(self.still.select_rows(rows), _drift_rows(self.drift, rows),
+                        self.seconds)
+
+    def _inflated(self, radius: float) -> RestrictedArea:
+        return Forecast(self.still.inflate(radius),
+                        [(part.inflate(radius), v) for part, v in self.drift], self.seconds)
+
+    def _bounded(self, workspace: Bounds) -> RestrictedArea:
+        return Forecast(self.still.bounded(workspace), self.drift, self.seconds)

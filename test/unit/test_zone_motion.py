@@ -9,6 +9,7 @@ import torch
 from hypothesis import given
 from hypothesis import strategies as st
 
+from constrained_diffusion_ros.zones.geometry import ZoneSet
 from constrained_diffusion_ros.zones.live import LiveZones
 from constrained_diffusion_ros.zones.motion import (
     FLOOR,
@@ -128,3 +129,26 @@ def test_the_live_zones_hand_a_shield_the_moving_ones_apart_and_aged() -> None:
     assert now.tolist() == pytest.approx([30.0, 10.0])
     assert later[0] == pytest.approx(30.0 - grown, abs=1e-3) and later[1] == pytest.approx(10.0)
     assert area.contains(torch.tensor([[130.0, 120.0]])).item()  # the hand as it is
+
+
+def test_plans_see_a_moving_zone_where_it_will_be_when_each_waypoint_runs() -> None:
+    """`MovingZones.ahead`: waypoint h is checked against the zone carried on at its measured
+    velocity for seconds[h], in every query the hooks make (inside, distance, projection, one
+    moment per row for path repair); without a measured velocity the zones are as they are."""
+    zone = ZoneSet.from_polygons([np.array([(0, 0), (20, 0), (20, 20), (0, 20)])])
+    velocity = torch.tensor([[100.0, 0.0], [0.0, 100.0]])  # per row
+    area = MovingZones(zone, ZoneSet.empty(), zone, 150.0, 0.0, 0.4, drift=[(zone, velocity)])
+    forecast = area.ahead(torch.arange(4, dtype=torch.float64) * 0.1)  # 10 px a waypoint
+    riding = torch.tensor([[[15.0 + 10 * h, 10.0] for h in range(4)],
+                           [[10.0, 15.0 + 10 * h] for h in range(4)]])
+    assert forecast.contains(riding).all()
+    waiting = torch.tensor([[[15.0, 10.0]] * 4] * 2)  # where the zone is now
+    assert forecast.contains(waiting).tolist() == [[True, True, False, False]] * 2
+    out = forecast.project_out(riding, 1.0)
+    assert (forecast.signed_distance(out) >= 1.0 - 1e-6).all()
+    later = forecast.columns(2).select_rows(torch.tensor([1])).at(torch.tensor([1]))
+    assert later.contains(torch.tensor([[[10.0, 45.0]]])).item()  # row 1 at 0.3 s: y 30..50
+    with pytest.raises(ValueError, match="chunks of 4 waypoints"):
+        forecast.contains(torch.zeros(2, 3, 2))
+    unmeasured = MovingZones(zone, ZoneSet.empty(), zone, 150.0, 0.0, 0.4)
+    assert unmeasured.ahead(torch.zeros(4)) is zone

@@ -236,7 +236,9 @@ def report_moving(configuration: str, results: dict[tuple[str, float], list[Movi
         contacts = sum(t.contacts for t in trials)
         unavoidable_steps = sum(t.unavoidable for t in trials)
         print(f"    {kind} {speed:g} px/s: {len(trials)} trials, "
-              f"{sum(t.contacts > 0 for t in trials)} with contact; contact steps {contacts} "
+              f"{sum(t.contacts > 0 for t in trials)} with contact "
+              f"({sum(t.contacts > 0 and t.cornered > 0 for t in trials)} of them cornered); "
+              f"trials cornered {sum(t.cornered > 0 for t in trials)}; contact steps {contacts} "
               f"({contacts - unavoidable_steps} avoidable, {unavoidable_steps} unavoidable); "
               f"deepest overlap {max(t.deepest for t in trials):.2f} px; least separation "
               f"min {least.min():.1f}, median {np.median(least):.1f} px; setpoints in the zone "

@@ -339,8 +339,13 @@ def test_an_interrupted_recovery_leaves_the_bag_as_it_was(signum, tmp_path):
     .recovering-* scratch and renames nothing. The process signals itself after the first
     message is copied; it must end (not finish the recovery) with the bag unchanged."""
     bag = killed_recording(tmp_path / "bag", 3).parent
+    # Started under nohup, or in the background of a shell, the test inherits SIGHUP or
+    # SIGINT ignored, and recover_bag (rightly) leaves an ignored signal ignored: handled
+    # here as in a process started from a terminal.
+    default = "signal.default_int_handler" if signum == signal.SIGINT else "signal.SIG_DFL"
     prelude = (
-        "import os, time\n"
+        "import os, signal, time\n"
+        f"signal.signal({int(signum)}, {default})\n"
         "from constrained_diffusion_ros.evaluation import bags\n"
         "complete = bags._complete_messages\n"
         "def interrupted(stream):\n"

@@ -30,7 +30,9 @@ from msg_schemas import FRAME_ID
 from msg_schemas.spin import SHUTDOWN_DEADLINE_S
 
 PERIOD_S = 0.05  # 20 Hz: a clock that went on alone would send many setpoints in a second
-REACTION_BOUND_MS = 300.0  # a zone answered after a message too big to read: was 8000 ms
+# A zone answered after a message too big to read: was 8000 ms. Typically 6-35 ms here; a CI
+# run under full load once took 341 ms, so the bound says "not seconds", not a timing.
+REACTION_BOUND_MS = 1000.0
 
 
 def zone_bytes(zone_id: int, vertices: int) -> bytes:

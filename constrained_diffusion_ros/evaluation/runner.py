@@ -153,11 +153,11 @@ def cell_metrics(log: RolloutLog, rows: np.ndarray, scenario: Scenario) -> dict[
         # A disc that starts in a zone cannot leave it at once: its first contact steps, until
         # it is first out, are unavoidable (the zone was put on it).
         forced = started_inside[:, None] & (np.cumsum(~body, axis=1) == 0)
-        for episode, step in zip(*np.nonzero(body & ~forced)):
+        for step in np.flatnonzero((body & ~forced).any(axis=0)):  # the episodes at once
+            episodes = np.flatnonzero(body[:, step] & ~forced[:, step])
             later = zones[min(step + 1, n_steps - 1)]
-            forced[episode, step] = unavoidable(
-                pusher[episode:episode + 1, step],
-                later.select_rows(torch.tensor([episode])))[0]
+            forced[episodes, step] = unavoidable(
+                pusher[episodes, step], later.select_rows(torch.from_numpy(episodes)))
         least = gap.min(axis=1)
         motion = {"contact_steps": float(body.sum(axis=1).mean()),
                   "avoidable_contact_steps": int((body & ~forced).sum()),

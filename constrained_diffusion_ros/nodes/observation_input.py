@@ -41,7 +41,8 @@ class ObservationInput:
     """Calls `on_pair(stamp, stamp_msg)` when both halves of a stamp are in; the node then
     `take`s the observation. `refused` counts the observations refused; `pusher` is the last
     plausible pusher position, `moved` how far it moved from the one before (None at a new
-    episode: a stamp no later than the last)."""
+    episode: a stamp no later than the last). A new run whose first observations are refused
+    stays new until one is taken: its later stamps may pass the old run's last."""
 
     def __init__(self, node: Node, robot: RobotModel,
                  on_pair: Callable[[float, object], None]) -> None:
@@ -51,6 +52,7 @@ class ObservationInput:
         self.refused = 0
         self.pusher: np.ndarray | None = None
         self.pusher_stamp: float | None = None
+        self.run_pending = False  # a new run began with refused observations: none taken yet
         self.moved: float | None = None
         self.caps = {PolygonStamped: largest(PolygonStamped(polygon=Polygon(
             points=[Point32()] * KEYPOINTS))), PointStamped: largest(PointStamped())}
@@ -96,8 +98,15 @@ class ObservationInput:
 
     def starts_run(self, stamp: float) -> bool:
         """Whether an observation stamped `stamp` starts a new run (episode): it is the first,
-        or no later than the last plausible one (the simulator was reset, stamps start again)."""
-        return self.pusher_stamp is None or stamp <= self.pusher_stamp
+        or no later than the last plausible one (the simulator was reset, stamps start again),
+        or a new run none of whose observations was taken yet."""
+        return self.pusher_stamp is None or self.run_pending or stamp <= self.pusher_stamp
+
+    def ends_run(self, stamp: float) -> bool:
+        """Whether `stamp` is the first sign that a run before has ended (counted once per
+        reset, whether its first observation is taken or refused)."""
+        return (self.pusher_stamp is not None and not self.run_pending
+                and stamp <= self.pusher_stamp)
 
     def take(self, stamp: float) -> np.ndarray | None:
         """The observation of `stamp` from its two halves (older halves dropped), or None
@@ -113,10 +122,11 @@ class ObservationInput:
                                    0.0 if new_episode else stamp - self.pusher_stamp)
         if reason is not None:
             self.refused += 1
+            self.run_pending = new_episode
             self.node.get_logger().warning(
                 f"observation refused, last safe setpoint held: {reason}",
                 throttle_duration_sec=1.0)
             return None
         self.moved = None if new_episode else float(np.linalg.norm(pusher - self.pusher))
-        self.pusher, self.pusher_stamp = pusher, stamp
+        self.pusher, self.pusher_stamp, self.run_pending = pusher, stamp, False
         return observation

@@ -209,7 +209,8 @@ class PolicyNode(Node):
         step = step_of_stamp(stamp_msg, self.robot.control_hz)
         if self.realtime:  # the setpoint the clock sends from now on
             new_run = self.observations.starts_run(stamp)
-            restarted = new_run and self.observations.pusher_stamp is not None
+            # A reset, or a participant sending old stamps: said either way (WARN).
+            self.runs_restarted += self.observations.ends_run(stamp)
             if new_run:  # a reset: the run before's setpoint is never sent again, and nothing
                 self.latest_stamp = None  # is sent until this run's first observation is taken
                 self.output.withdraw()
@@ -217,8 +218,6 @@ class PolicyNode(Node):
             if observation is not None:
                 if new_run:  # none of the run before's plans (one in flight) goes into this
                     self.loop.reset()  # one, even where its first stamp equals the last
-                # A reset, or a participant sending old stamps: said either way (WARN).
-                self.runs_restarted += restarted
                 self.latest_stamp = stamp_msg
                 self._send(self.loop.observe(step, observation), publish=False)
             return

@@ -111,6 +111,24 @@ def test_after_a_reset_whose_first_observation_is_refused_no_setpoint_of_the_run
     assert node.tick() == [(step_ns(1), (300.0, 300.0))]
 
 
+def test_a_new_run_stays_new_until_one_of_its_observations_is_taken(tiny_policy) -> None:
+    """The run before reached step 1; the new run's first two observations are refused, so its
+    third is stamped later than the run before's last. It still starts a run: taken (not
+    judged a jump from the old run's pusher), counted once, the loop started afresh."""
+    node = RealtimeObservations(tiny_policy)
+    for step in range(2):
+        node.observe(step, (100.0, 100.0))
+    for step in range(2):
+        node.observe(step, (1e6, 1e6))  # the new run's first two: refused
+    assert node.node.runs_restarted == 1
+    node.observe(2, (400.0, 400.0))
+    assert node.node.observations.refused == 2
+    assert node.node.runs_restarted == 1
+    assert node.node.observations.moved is None  # a new episode's first
+    assert node.tick() == [(step_ns(2), (400.0, 400.0))]
+    assert node.loop.stats.plans_asked == 2  # the run before's, and this one's afresh
+
+
 def test_a_plan_asked_for_the_run_before_never_goes_into_a_run_that_starts_at_the_same_stamp(
         tiny_policy) -> None:
     """A reset right after the first step: the new run starts at the stamp of the last one

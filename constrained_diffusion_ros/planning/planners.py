@@ -155,11 +155,12 @@ class ConstrainedPlanner:
             return self.sampler.sample(observations, generator, first)
         area = self.planning_area(zones)
         if self.config.from_scratch:
-            return self._from_scratch(observations, area, generator)
+            return self._from_scratch(observations, zones, area, generator)
         if self.config.candidates > 1:
             return self._best_of(observations, zones, generator, prefix)
         pusher = self.robot.pusher(observations[:, -1])
-        return self.sampler.sample(observations, generator, first + self.hooks(area, pusher))
+        return self.sampler.sample(observations, generator, first + self.hooks(area, pusher),
+                                   zones)
 
     def violates(self, waypoints: Tensor, zones: RestrictedArea | None,
                  rows: np.ndarray | None = None) -> Tensor:
@@ -215,20 +216,23 @@ class ConstrainedPlanner:
         last = LastUpdate()
         first = [] if prefix is None else [prefix.repeated(k)]
         chunks = self.sampler.sample(observations[rows], generator,
-                                     first + steering + [last] + hooks[len(steering):])
+                                     first + steering + [last] + hooks[len(steering):],
+                                     zones.select_rows(rows))
         start = self.policy.config.first_executed
         executed = slice(start, start + self.policy.config.n_action_steps)
         moved = (chunks - last.sample)[:, executed].norm(dim=-1).sum(dim=-1)
         choice = moved.reshape(batch, k).argmin(dim=1)
         return chunks.reshape(batch, k, *chunks.shape[1:])[torch.arange(batch), choice]
 
-    def _from_scratch(self, observations: Tensor, area: RestrictedArea,
-                      generator: torch.Generator | None) -> Tensor:
+    def _from_scratch(self, observations: Tensor, zones: RestrictedArea,
+                      area: RestrictedArea, generator: torch.Generator | None) -> Tensor:
         """The baseline the paper argues against: N whole chunks per episode in one batch; keep
         the first whose executed waypoints all lie outside, else the one with fewest inside."""
         n, (batch, *rest) = self.config.from_scratch, observations.shape
         repeated = observations[:, None].expand(batch, n, *rest).reshape(batch * n, *rest)
-        chunks = self.sampler.sample(repeated, generator).reshape(batch, n, -1, 2)
+        chunks = self.sampler.sample(repeated, generator, (),
+                                     zones.select_rows(torch.arange(batch).repeat_interleave(n))
+                                     ).reshape(batch, n, -1, 2)
         first = self.policy.config.first_executed
         executed = slice(first, first + self.policy.config.n_action_steps)
         inside = area.contains(chunks)[:, :, executed].sum(dim=-1)  # (batch, n)
@@ -271,12 +275,14 @@ class MixedPlanner:
         if len(self.planners) == 1:
             return self.planners[0].plan(observations, zones, rows, generator, prefix)
         hooks: list[SampleHook] = [] if prefix is None else [prefix]
+        seen_by = torch.zeros(len(observations), dtype=torch.bool)  # rows that constrain
         for planner, mine in self._by_config(rows) if zones is not None else ():
             area = planner.planning_area(zones.select_rows(mine))
             pusher = self.robot.pusher(observations[mine, -1])
             mine_rows = torch.from_numpy(mine)
             hooks += [OnRows(hook, mine_rows) for hook in planner.hooks(area, pusher)]
-        return self.planners[0].sampler.sample(observations, generator, hooks)
+            seen_by[mine_rows] = True
+        return self.planners[0].sampler.sample(observations, generator, hooks, zones, seen_by)
 
     def violates(self, waypoints: Tensor, zones: RestrictedArea | None,
                  rows: np.ndarray) -> Tensor:

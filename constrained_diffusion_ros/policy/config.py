@@ -27,6 +27,7 @@ SIZE_LIMITS = {
     "n_groups": MAX_WIDTH, "diffusion_step_embed_dim": MAX_WIDTH,  # channels
     "num_train_timesteps": 10_000,  # the noise schedule's arrays hold one entry per timestep
 }
+ZONE_GRIDS = (16, 32, 64)  # zone raster sizes the encoder takes (it halves them three times)
 # config.json is a few kB (22 normaliser pairs); anything near this is not a policy's config.
 MAX_CONFIG_BYTES = 1 << 20
 
@@ -87,6 +88,12 @@ class PolicyConfig:
     prediction_type: str = "epsilon"
     clip_sample: bool = True
     normalizer: dict[str, dict[str, list[float]]] = field(default_factory=dict)
+    # A zone-aware policy also takes the zones in force: a `zone_grid` x `zone_grid` raster of
+    # their coverage (zones/raster.py) through a small convolutional encoder into
+    # `zone_features` more numbers of the condition. 0: the policy does not see zones.
+    zone_grid: int = 0
+    zone_features: int = 64
+    zone_workspace: tuple[float, ...] = (0.0, 0.0, 512.0, 512.0)  # x_min, y_min, x_max, y_max px
 
     def __post_init__(self) -> None:
         """Refuse what would load and then fail at the first observation, or allocate
@@ -112,6 +119,19 @@ class PolicyConfig:
         if self.first_executed + self.n_action_steps > self.horizon:
             problems.append(f"n_obs_steps - 1 + n_action_steps ({self.first_executed} + "
                             f"{self.n_action_steps}) exceeds horizon {self.horizon}")
+        if self.zone_grid and (not isinstance(self.zone_grid, int)
+                               or self.zone_grid not in ZONE_GRIDS):
+            problems.append(f"zone_grid must be 0 or one of {ZONE_GRIDS}, got "
+                            f"{self.zone_grid!r}")
+        if not isinstance(self.zone_features, int) or not 1 <= self.zone_features <= MAX_WIDTH:
+            problems.append(f"zone_features must be a positive integer up to {MAX_WIDTH}, got "
+                            f"{self.zone_features!r}")
+        bounds = self.zone_workspace
+        if not (isinstance(bounds, tuple) and len(bounds) == 4
+                and all(isinstance(v, int | float) and math.isfinite(v) for v in bounds)
+                and bounds[0] < bounds[2] and bounds[1] < bounds[3]):
+            problems.append(f"zone_workspace must be 4 finite numbers x_min, y_min, x_max, "
+                            f"y_max with the minima below the maxima, got {bounds!r}")
         if self.kernel_size % 2 == 0:
             problems.append(f"kernel_size must be odd, got {self.kernel_size}")
         if self.prediction_type not in ("epsilon", "sample"):
@@ -126,7 +146,12 @@ class PolicyConfig:
 
     @property
     def global_cond_dim(self) -> int:
-        return self.obs_dim * self.n_obs_steps
+        return self.obs_dim * self.n_obs_steps + (self.zone_features if self.zone_grid else 0)
+
+    @property
+    def sees_zones(self) -> bool:
+        """Whether the policy takes the zones in force as part of its condition."""
+        return self.zone_grid > 0
 
     @property
     def first_executed(self) -> int:
@@ -143,8 +168,9 @@ class PolicyConfig:
         if unknown:
             raise ValueError(f"unknown policy config keys: {', '.join(unknown)}")
         data = dict(data)
-        if "down_dims" in data:
-            data["down_dims"] = tuple(data["down_dims"])
+        for key in ("down_dims", "zone_workspace"):
+            if isinstance(data.get(key), list):
+                data[key] = tuple(data[key])
         return cls(**data)
 
 

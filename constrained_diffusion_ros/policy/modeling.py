@@ -27,6 +27,7 @@ def build_unet(config: PolicyConfig) -> ConditionalUnet1D:
         kernel_size=config.kernel_size,
         n_groups=config.n_groups,
         step_embed_dim=config.diffusion_step_embed_dim,
+        zone_features=config.zone_features if config.sees_zones else 0,
     )
 
 
@@ -78,18 +79,32 @@ class DiffusionPolicy(nn.Module):
     def __getstate__(self) -> dict:
         return {**self.__dict__, "_films": None}  # a planning process makes its own
 
-    def condition(self, obs_history: torch.Tensor) -> torch.Tensor:
-        """(B, n_obs_steps, obs_dim) raw observations -> (B, global_cond_dim) network condition."""
+    def condition(self, obs_history: torch.Tensor, zone_raster: torch.Tensor | None = None
+                  ) -> torch.Tensor:
+        """(B, n_obs_steps, obs_dim) raw observations -> (B, global_cond_dim) network condition.
+        A zone-aware policy also encodes `zone_raster` (B, grid, grid) (zones/raster.py): the
+        zones in force; None, no zones (an empty raster, as training drops the condition)."""
         expected = (self.config.n_obs_steps, self.config.obs_dim)
         if obs_history.ndim != 3 or tuple(obs_history.shape[1:]) != expected:
             raise ValueError(f"observation history must be (B, {expected[0]}, {expected[1]}), "
                              f"got {tuple(obs_history.shape)}")
-        return self.obs_normalizer.normalize(obs_history.float()).flatten(1)
+        cond = self.obs_normalizer.normalize(obs_history.float()).flatten(1)
+        if not self.config.sees_zones:
+            return cond
+        grid = self.config.zone_grid
+        if zone_raster is None:
+            zone_raster = torch.zeros(len(cond), grid, grid)
+        if tuple(zone_raster.shape) != (len(cond), grid, grid):
+            raise ValueError(f"zone raster must be ({len(cond)}, {grid}, {grid}), got "
+                             f"{tuple(zone_raster.shape)}")
+        zones = self.unet.zone_encoder(zone_raster.float().to(cond.device))
+        return torch.cat([cond, zones], dim=1)
 
     def compute_loss(self, obs_history: torch.Tensor, actions: torch.Tensor,
-                     generator: torch.Generator | None = None) -> torch.Tensor:
+                     generator: torch.Generator | None = None,
+                     zone_raster: torch.Tensor | None = None) -> torch.Tensor:
         """The reference's training objective: MSE between true and predicted noise."""
-        cond = self.condition(obs_history)
+        cond = self.condition(obs_history, zone_raster)
         clean = self.action_normalizer.normalize(actions)
         noise = torch.randn(clean.shape, generator=generator).to(clean.device)
         steps = torch.randint(0, self.config.num_train_timesteps, (clean.shape[0],),

@@ -56,12 +56,33 @@ class FiLMResidualBlock(nn.Module):
         return out + self.skip(x)
 
 
+class ZoneEncoder(nn.Module):
+    """A zone raster (B, grid, grid) -> (B, features): three strided 3 x 3 convolutions, then
+    a linear layer over the 4 x 4 map they leave, for the condition of a zone-aware policy."""
+
+    def __init__(self, features: int, channels: tuple[int, ...] = (16, 32, 64)) -> None:
+        super().__init__()
+        layers: list[nn.Module] = []
+        for c_in, c_out in itertools.pairwise((1, *channels)):
+            layers += [nn.Conv2d(c_in, c_out, 3, stride=2, padding=1), nn.Mish()]
+        self.convolutions = nn.Sequential(*layers, nn.AdaptiveAvgPool2d(4), nn.Flatten())
+        self.linear = nn.Linear(16 * channels[-1], features)
+
+    def forward(self, raster: torch.Tensor) -> torch.Tensor:
+        return self.linear(self.convolutions(raster[:, None]))
+
+
 class ConditionalUnet1D(nn.Module):
-    """Predicts the noise in a (batch, horizon, action_dim) sample given step and global cond."""
+    """Predicts the noise in a (batch, horizon, action_dim) sample given step and global cond.
+
+    A zone-aware network also holds the encoder of its zone raster (`zone_encoder`, trained
+    with it and saved with its weights); the policy joins its output to the condition."""
 
     def __init__(self, action_dim: int, global_cond_dim: int, down_dims: tuple[int, ...],
-                 kernel_size: int = 5, n_groups: int = 8, step_embed_dim: int = 256) -> None:
+                 kernel_size: int = 5, n_groups: int = 8, step_embed_dim: int = 256,
+                 zone_features: int = 0) -> None:
         super().__init__()
+        self.zone_encoder = ZoneEncoder(zone_features) if zone_features else None
         self.step_encoder = nn.Sequential(
             SinusoidalStepEmbedding(step_embed_dim),
             nn.Linear(step_embed_dim, 4 * step_embed_dim),

@@ -22,6 +22,8 @@ from constrained_diffusion_ros.policy.schedulers import (
     make_scheduler,
 )
 from constrained_diffusion_ros.sampling.updates import Noising, ScheduledUpdates
+from constrained_diffusion_ros.zones.area import RestrictedArea
+from constrained_diffusion_ros.zones.raster import zone_raster
 
 
 @dataclass(frozen=True)
@@ -92,11 +94,21 @@ class DenoisingSampler:
 
     @torch.no_grad()
     def sample(self, obs_history: torch.Tensor, generator: torch.Generator | None = None,
-               hooks: Sequence[SampleHook] = ()) -> torch.Tensor:
-        """(B, n_obs_steps, obs_dim) observations -> (B, horizon, action_dim) workspace actions."""
+               hooks: Sequence[SampleHook] = (), zones: RestrictedArea | None = None,
+               seen_by: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, n_obs_steps, obs_dim) observations -> (B, horizon, action_dim) workspace actions.
+        A zone-aware policy plans with `zones` (batch-aware or one for all rows) in its
+        condition, on the rows `seen_by` (bool (B,); None: all); any other policy ignores them
+        (the hooks are what keep a plan out of them)."""
         config, normalizer = self.policy.config, self.policy.action_normalizer
         device = self.policy.device  # the network's; noise and hooks stay on the CPU
-        cond = self.policy.condition(obs_history).to(device)
+        raster = None
+        if zones is not None and config.sees_zones:
+            raster = zone_raster(zones, len(obs_history), config.zone_grid,
+                                 config.zone_workspace)
+            if seen_by is not None:
+                raster = raster * seen_by.reshape(-1, 1, 1)
+        cond = self.policy.condition(obs_history, raster).to(device)
         shape = (cond.shape[0], config.horizon, config.action_dim)
         sample = torch.randn(shape, generator=generator).to(device)
         timesteps = self.scheduler.timesteps

@@ -9,6 +9,7 @@ the loss curve as PNG and JSON.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -31,11 +32,16 @@ from constrained_diffusion_ros.policy.config import PolicyConfig
 from constrained_diffusion_ros.policy.device import resolve_device
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.normalizer import MinMaxNormalizer
-from constrained_diffusion_ros.policy.weights import WEIGHTS_FILE, save_policy
+from constrained_diffusion_ros.policy.weights import WEIGHTS_FILE, load_policy, save_policy
+from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.training.dataset import WindowSampler, load_demonstrations
+from constrained_diffusion_ros.training.zone_shapes import ShapeBank, ZoneSampler
+from constrained_diffusion_ros.zones.raster import fine_cell_px
 from msg_schemas.text import one_line
 
 CHECKPOINT_DIR = "checkpoint"
+ZONE_GRID = 32  # a zone-aware policy's raster: 16 px cells over PushT's 512 px
+SHAPES = 4096  # zone shapes drawn for training
 
 
 class EmaWeights:
@@ -123,20 +129,46 @@ def plot_losses(losses: list[float], path: Path, title: str) -> None:
     plt.close(fig)
 
 
+def starting_policy(args: argparse.Namespace, demos) -> DiffusionPolicy:
+    """The network training starts from: fresh, or (`--init-from`) a trained policy's weights,
+    made zone-aware with `--zones`: the condition's new inputs get zero weights, so the network
+    starts as exactly the policy it was, and learns what the zones add."""
+    zone_grid = ZONE_GRID if args.zones else 0
+    if args.init_from is None:
+        normalizer = {"obs": MinMaxNormalizer.fit(demos.observations).to_dict(),
+                      "action": MinMaxNormalizer.fit(demos.actions).to_dict()}
+        return DiffusionPolicy(PolicyConfig(down_dims=tuple(args.down_dims),
+                                            normalizer=normalizer, zone_grid=zone_grid))
+    trained = load_policy(args.init_from)
+    config = dataclasses.replace(trained.config, zone_grid=zone_grid or trained.config.zone_grid)
+    policy = DiffusionPolicy(config)
+    state = policy.unet.state_dict()
+    with torch.no_grad():
+        for name, tensor in trained.unet.state_dict().items():
+            target = state[name]
+            target.zero_()
+            target[tuple(slice(0, n) for n in tensor.shape)] = tensor
+    return policy
+
+
 def train(args: argparse.Namespace) -> dict:
     device = use_compute_arguments(args)
     torch.manual_seed(args.seed)
     demos = load_demonstrations(args.dataset)
-    base = PolicyConfig(down_dims=tuple(args.down_dims))
-    sampler = WindowSampler(demos, base.horizon, base.n_obs_steps, base.n_action_steps)
-    normalizer = {"obs": MinMaxNormalizer.fit(demos.observations).to_dict(),
-                  "action": MinMaxNormalizer.fit(demos.actions).to_dict()}
-    config = PolicyConfig(down_dims=tuple(args.down_dims), normalizer=normalizer)
-    policy = DiffusionPolicy(config).to(device).train()
+    policy = starting_policy(args, demos).to(device).train()
+    config = policy.config
+    sampler = WindowSampler(demos, config.horizon, config.n_obs_steps, config.n_action_steps)
+    generator = torch.Generator().manual_seed(args.seed)
+    zones = None
+    if config.sees_zones:
+        bank = ShapeBank.build(SHAPES, args.seed, fine_cell_px(config.zone_workspace,
+                                                               config.zone_grid),
+                               PUSHT_ROBOT.pusher_radius)
+        zones = ZoneSampler(bank, config.zone_grid, config.zone_workspace, args.zone_drop,
+                            generator)
     ema = EmaWeights(policy.unet)
     optimizer = torch.optim.AdamW(policy.unet.parameters(), lr=args.lr, betas=(0.95, 0.999),
                                   weight_decay=1e-6)
-    generator = torch.Generator().manual_seed(args.seed)
     output = Path(args.output)
     checkpoint = output / CHECKPOINT_DIR
     step, losses = 0, []
@@ -161,12 +193,14 @@ def train(args: argparse.Namespace) -> dict:
         while step < args.steps:
             if cursor + args.batch_size > len(order):
                 order, cursor = torch.randperm(len(sampler), generator=generator), 0
-            obs, actions = (t.to(device) for t in
-                            sampler.batch(order[cursor: cursor + args.batch_size]))
+            obs, actions = sampler.batch(order[cursor: cursor + args.batch_size])
+            raster = None if zones is None else zones.rasters(
+                torch.cat([obs[..., -2:], actions], dim=1)).to(device)
+            obs, actions = obs.to(device), actions.to(device)
             cursor += args.batch_size
             for group in optimizer.param_groups:
                 group["lr"] = args.lr * cosine_with_warmup(step, args.warmup, args.steps)
-            loss = policy.compute_loss(obs, actions, generator)
+            loss = policy.compute_loss(obs, actions, generator, raster)
             if not torch.isfinite(loss):  # NaN in the data or a diverged run: stop, save none
                 raise ValueError(f"non-finite loss ({loss.item()}) at step {step + 1}; nothing "
                                  f"saved after the last checkpoint (check the dataset for "
@@ -190,6 +224,8 @@ def train(args: argparse.Namespace) -> dict:
         "batch_size": args.batch_size, "lr": args.lr, "seed": args.seed,
         "final_loss_mean_last_500": final_loss, "wall_time_s_this_run": round(elapsed, 1),
         "parameters": n_params, "episodes": len(demos.episode_ends),
+        **({"init_from": str(args.init_from)} if args.init_from else {}),
+        **({"zone_drop": args.zone_drop, "zone_shapes": SHAPES} if zones else {}),
     }}
     save_policy(policy, output, extra=facts)
     plot_losses(losses, output / "loss_curve.png", f"{n_params / 1e6:.1f}M-parameter U-Net")
@@ -210,6 +246,17 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--warmup", type=int, default=500, help="linear warm-up steps")
     parser.add_argument("--down-dims", type=positive_int, nargs="+", default=[64, 128, 256],
                         help="U-Net channel widths per level")
+    parser.add_argument("--zones", action="store_true",
+                        help="train a zone-aware policy: the zones in force join its "
+                             "condition (shapes of many kinds placed so that each "
+                             "demonstration keeps clear of them)")
+    parser.add_argument("--zone-drop", type=float, default=0.25,
+                        help="share of training windows given no zones, so the policy without "
+                             "zones stays what it was")
+    parser.add_argument("--init-from", default=None, metavar="POLICY_DIR",
+                        help="start from this trained policy's weights (with --zones: made "
+                             "zone-aware, starting exactly as it was); its architecture and "
+                             "normaliser are kept, --down-dims ignored")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--checkpoint-every", type=positive_int, default=1000)
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoint")

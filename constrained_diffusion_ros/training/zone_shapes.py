@@ -1,0 +1,180 @@
+"""Zones to train a zone-aware policy with, placed so that each demonstration avoids them.
+
+A bank of shapes of many kinds (posts, discs, walls, L, U, triangles, random star-shaped
+polygons, concave ones among them) is drawn once, each in a local frame around its anchor. For
+every training window, 0 to MAX_ZONES of them are placed by rejection: a candidate is kept only
+if the window's pusher positions and its action chunk keep the pusher's disc clear of it, so the
+windows show what the constrained distribution looks like. Most candidates are anchored near the
+window's own path (where a zone says something about the route); the rest anywhere. A share of
+windows (`drop`) gets none, so the network without zones stays the policy it was.
+
+Everything a batch needs is a lookup in precomputed masks: the occupancy of each shape at the
+raster's fine points (to paint the condition exactly as `zones/raster.py` samples real zones),
+and at a finer grid its grown version (for the rejection).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import shapely
+import shapely.affinity
+import torch
+from torch import Tensor
+
+from constrained_diffusion_ros.zones.raster import SAMPLES_PER_SIDE, coverage_raster
+
+KINDS = ("post", "disc", "wall", "L", "U", "triangle", "polygon")
+MAX_ZONES = 4
+FRAME_PX = 288.0  # side of a shape's local frame, centred on its anchor
+REACH_PX = 120.0  # every shape lies within this of its anchor (it fits its frame, grown)
+CHECK_PX = 4.0  # cell of the grown masks the rejection looks points up in
+CHECK_SLACK_PX = 3.0  # grown by this beyond the disc: a point may sit anywhere in its cell
+NEAR_PATH = 0.7  # share of candidates anchored near the window's path
+NEAR_PX = 100.0  # how far from a point of the path such an anchor may be
+TRIES = 8  # candidates per zone of a window
+
+
+def random_shape(kind: str, rng: np.random.Generator) -> shapely.Polygon:
+    """One shape of `kind`, around the origin, at a random angle."""
+    u = rng.uniform
+    if kind == "post":
+        side = u(20, 50)
+        shape = shapely.box(-side / 2, -side / 2, side / 2, side / 2)
+    elif kind == "disc":
+        shape = shapely.Point(0, 0).buffer(u(10, 30), quad_segs=8)
+    elif kind == "wall":
+        length, width = u(80, 220), u(12, 30)
+        shape = shapely.box(-length / 2, -width / 2, length / 2, width / 2)
+    elif kind == "L":
+        a, b, w = u(60, 160), u(60, 160), u(15, 30)
+        shape = shapely.union(shapely.box(0, 0, a, w), shapely.box(0, 0, w, b))
+    elif kind == "U":
+        base, arm, w = u(100, 220), u(50, 110), u(15, 30)
+        shape = shapely.union_all([shapely.box(0, 0, base, w), shapely.box(0, 0, w, arm),
+                                   shapely.box(base - w, 0, base, arm)])
+    elif kind == "triangle":
+        angles = np.sort(rng.uniform(0, 2 * np.pi, 3))
+        radii = rng.uniform(30, 90, 3)
+        shape = shapely.Polygon(np.c_[radii * np.cos(angles), radii * np.sin(angles)])
+    else:  # a star-shaped polygon: concave where a radius dips
+        count = int(rng.integers(5, 10))
+        angles = np.sort(rng.uniform(0, 2 * np.pi, count))
+        radii = rng.uniform(20, 90, count)
+        shape = shapely.Polygon(np.c_[radii * np.cos(angles), radii * np.sin(angles)])
+    shape = shapely.affinity.rotate(shape, u(0, 360), origin="centroid")
+    shape = shapely.affinity.translate(shape, -shape.centroid.x, -shape.centroid.y)
+    extent = float(np.max(np.linalg.norm(np.asarray(shape.exterior.coords), axis=1)))
+    if extent > REACH_PX:
+        shape = shapely.affinity.scale(shape, REACH_PX / extent, REACH_PX / extent,
+                                       origin=(0, 0))
+    return shapely.make_valid(shape) if not shape.is_valid else shape
+
+
+def cell_centres(cells: int, cell_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """x and y (cells x cells) of the centres of a local frame's cells, the anchor at 0."""
+    centres = (np.arange(cells) + 0.5) * cell_px - FRAME_PX / 2
+    y, x = np.meshgrid(centres, centres, indexing="ij")
+    return x, y
+
+
+@dataclass
+class ShapeBank:
+    """`count` shapes with their masks: `occupancy` (count, F, F) at the raster's fine points
+    of a frame, `grown` (count, C, C) at CHECK_PX, grown by the pusher radius and slack."""
+
+    shapes: list[shapely.Polygon]
+    occupancy: Tensor
+    grown: Tensor
+    fine_px: float
+
+    @classmethod
+    def build(cls, count: int, seed: int, fine_px: float, pusher_radius: float) -> ShapeBank:
+        rng = np.random.default_rng(seed)
+        shapes = [random_shape(KINDS[i % len(KINDS)], rng) for i in range(count)]
+        fine = round(FRAME_PX / fine_px)
+        check = round(FRAME_PX / CHECK_PX)
+        fx, fy = cell_centres(fine, fine_px)
+        cx, cy = cell_centres(check, CHECK_PX)
+        occupancy = np.stack([shapely.contains_xy(s, fx, fy) for s in shapes])
+        grown = np.stack([shapely.contains_xy(s.buffer(pusher_radius + CHECK_SLACK_PX), cx, cy)
+                          for s in shapes])
+        return cls(shapes, torch.from_numpy(occupancy), torch.from_numpy(grown), fine_px)
+
+
+class ZoneSampler:
+    """Zone rasters for batches of training windows (see the module's docstring)."""
+
+    def __init__(self, bank: ShapeBank, grid: int, workspace: tuple[float, ...],
+                 drop: float, generator: torch.Generator) -> None:
+        self.bank, self.grid, self.drop, self.generator = bank, grid, drop, generator
+        self.origin = torch.tensor(workspace[:2], dtype=torch.float32)
+        self.size = torch.tensor([workspace[2] - workspace[0], workspace[3] - workspace[1]],
+                                 dtype=torch.float32)
+        self.fine = grid * SAMPLES_PER_SIDE
+        self.frame_cells = bank.occupancy.shape[-1]
+
+    def _uniform(self, *shape: int) -> Tensor:
+        return torch.rand(shape, generator=self.generator)
+
+    def _candidates(self, path: Tensor) -> tuple[Tensor, Tensor]:
+        """For (B, P, 2) path points: (B, TRIES) shape ids and (B, TRIES, 2) frame corners, in
+        whole fine cells from the workspace's origin."""
+        batch, points = path.shape[:2]
+        ids = torch.randint(len(self.bank.shapes), (batch, TRIES), generator=self.generator)
+        on_path = path[torch.arange(batch)[:, None],
+                       torch.randint(points, (batch, TRIES), generator=self.generator)]
+        angle = self._uniform(batch, TRIES) * 2 * torch.pi
+        offset = torch.stack([angle.cos(), angle.sin()], -1) * NEAR_PX * self._uniform(
+            batch, TRIES, 1)
+        anywhere = self.origin + self._uniform(batch, TRIES, 2) * self.size
+        near = self._uniform(batch, TRIES, 1) < NEAR_PATH
+        anchor = torch.where(near, on_path + offset, anywhere)
+        corner = torch.round((anchor - self.origin - FRAME_PX / 2) / self.bank.fine_px)
+        return ids, corner.long()
+
+    def _clear(self, path: Tensor, ids: Tensor, corner: Tensor) -> Tensor:
+        """(B, TRIES) bool: the path keeps the disc clear of each candidate."""
+        frame_px = corner.float() * self.bank.fine_px + self.origin  # (B, T, 2)
+        local = ((path[:, None] - frame_px[:, :, None]) / CHECK_PX).floor().long()  # B,T,P,2
+        cells = self.bank.grown.shape[-1]
+        inside = ((local >= 0) & (local < cells)).all(-1)
+        local = local.clamp(0, cells - 1)
+        hit = self.bank.grown[ids[:, :, None], local[..., 1], local[..., 0]] & inside
+        return ~hit.any(-1)
+
+    def place(self, path: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Zones for windows whose pusher path (its observed positions and its action chunk)
+        is `path` (B, P, 2) px: (B, MAX_ZONES) shape ids, (B, MAX_ZONES, 2) frame corners in
+        fine cells, and (B, MAX_ZONES) whether each slot holds a zone."""
+        batch = len(path)
+        wanted = torch.randint(1, MAX_ZONES + 1, (batch,), generator=self.generator)
+        wanted[self._uniform(batch) < self.drop] = 0
+        ids, corners, placed = [], [], []
+        for slot in range(MAX_ZONES):
+            candidates, corner = self._candidates(path)
+            clear = self._clear(path, candidates, corner) & (slot < wanted)[:, None]
+            first = clear.float().argmax(1)
+            ids.append(candidates[torch.arange(batch), first])
+            corners.append(corner[torch.arange(batch), first])
+            placed.append(clear.any(1))
+        return torch.stack(ids, 1), torch.stack(corners, 1), torch.stack(placed, 1)
+
+    def paint(self, ids: Tensor, corners: Tensor, placed: Tensor) -> Tensor:
+        """(B, grid, grid) the coverage raster of the zones `place` gave."""
+        rows, slots = torch.nonzero(placed, as_tuple=True)
+        shape, (cx, cy) = ids[rows, slots], corners[rows, slots].T
+        index, cells = torch.arange(self.fine), self.frame_cells
+        ly = index[None, :, None] - cy[:, None, None]  # (n, fine, 1): rows of each frame
+        lx = index[None, None, :] - cx[:, None, None]  # (n, 1, fine)
+        valid = (ly >= 0) & (ly < cells) & (lx >= 0) & (lx < cells)
+        mask = self.bank.occupancy[shape[:, None, None], ly.clamp(0, cells - 1),
+                                   lx.clamp(0, cells - 1)] & valid
+        canvas = torch.zeros(len(ids), self.fine, self.fine, dtype=torch.bool)
+        canvas.index_put_((rows,), mask, accumulate=True)
+        return coverage_raster(canvas, self.grid)
+
+    def rasters(self, path: Tensor) -> Tensor:
+        """(B, grid, grid) zone rasters for windows whose pusher path is `path` (B, P, 2)."""
+        return self.paint(*self.place(path))

@@ -195,7 +195,7 @@ def train(args: argparse.Namespace) -> dict:
                 order, cursor = torch.randperm(len(sampler), generator=generator), 0
             obs, actions = sampler.batch(order[cursor: cursor + args.batch_size])
             raster = None if zones is None else zones.rasters(
-                torch.cat([obs[..., -2:], actions], dim=1)).to(device)
+                torch.cat([obs[..., -2:], actions], dim=1), obs[:, -1, -2:]).to(device)
             obs, actions = obs.to(device), actions.to(device)
             cursor += args.batch_size
             for group in optimizer.param_groups:

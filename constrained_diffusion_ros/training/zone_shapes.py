@@ -3,10 +3,13 @@
 A bank of shapes of many kinds (posts, discs, walls, L, U, triangles, random star-shaped
 polygons, concave ones among them) is drawn once, each in a local frame around its anchor. For
 every training window, 0 to MAX_ZONES of them are placed by rejection: a candidate is kept only
-if the window's pusher positions and its action chunk keep the pusher's disc clear of it, so the
-windows show what the constrained distribution looks like. Most candidates are anchored near the
-window's own path (where a zone says something about the route); the rest anywhere. A share of
-windows (`drop`) gets none, so the network without zones stays the policy it was.
+if the window's pusher positions and its action chunk keep the pusher's disc clear of it. Where
+candidates are drawn depends on the observation only, never on the chunk: then the chunks of the
+windows a zone is kept for are the demonstrations' own, restricted to those that keep clear,
+which is the constrained distribution the policy should learn (candidates drawn along the chunk
+would teach that routes run beside zones). Most are anchored near the pusher, where its next
+moves go and a zone says something about the route; the rest anywhere. A share of windows
+(`drop`) gets none, so the network without zones stays the policy it was.
 
 Everything a batch needs is a lookup in precomputed masks: the occupancy of each shape at the
 raster's fine points (to paint the condition exactly as `zones/raster.py` samples real zones),
@@ -31,8 +34,8 @@ FRAME_PX = 288.0  # side of a shape's local frame, centred on its anchor
 REACH_PX = 120.0  # every shape lies within this of its anchor (it fits its frame, grown)
 CHECK_PX = 4.0  # cell of the grown masks the rejection looks points up in
 CHECK_SLACK_PX = 3.0  # grown by this beyond the disc: a point may sit anywhere in its cell
-NEAR_PATH = 0.7  # share of candidates anchored near the window's path
-NEAR_PX = 100.0  # how far from a point of the path such an anchor may be
+NEAR_PUSHER = 0.7  # share of candidates anchored near the pusher
+NEAR_PX = 160.0  # how far from the pusher such an anchor may be
 TRIES = 8  # candidates per zone of a window
 
 
@@ -118,19 +121,17 @@ class ZoneSampler:
     def _uniform(self, *shape: int) -> Tensor:
         return torch.rand(shape, generator=self.generator)
 
-    def _candidates(self, path: Tensor) -> tuple[Tensor, Tensor]:
-        """For (B, P, 2) path points: (B, TRIES) shape ids and (B, TRIES, 2) frame corners, in
-        whole fine cells from the workspace's origin."""
-        batch, points = path.shape[:2]
+    def _candidates(self, pusher: Tensor) -> tuple[Tensor, Tensor]:
+        """For (B, 2) pusher positions: (B, TRIES) shape ids and (B, TRIES, 2) frame corners,
+        in whole fine cells from the workspace's origin."""
+        batch = len(pusher)
         ids = torch.randint(len(self.bank.shapes), (batch, TRIES), generator=self.generator)
-        on_path = path[torch.arange(batch)[:, None],
-                       torch.randint(points, (batch, TRIES), generator=self.generator)]
         angle = self._uniform(batch, TRIES) * 2 * torch.pi
         offset = torch.stack([angle.cos(), angle.sin()], -1) * NEAR_PX * self._uniform(
             batch, TRIES, 1)
         anywhere = self.origin + self._uniform(batch, TRIES, 2) * self.size
-        near = self._uniform(batch, TRIES, 1) < NEAR_PATH
-        anchor = torch.where(near, on_path + offset, anywhere)
+        near = self._uniform(batch, TRIES, 1) < NEAR_PUSHER
+        anchor = torch.where(near, pusher[:, None] + offset, anywhere)
         corner = torch.round((anchor - self.origin - FRAME_PX / 2) / self.bank.fine_px)
         return ids, corner.long()
 
@@ -144,16 +145,17 @@ class ZoneSampler:
         hit = self.bank.grown[ids[:, :, None], local[..., 1], local[..., 0]] & inside
         return ~hit.any(-1)
 
-    def place(self, path: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def place(self, path: Tensor, pusher: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Zones for windows whose pusher path (its observed positions and its action chunk)
-        is `path` (B, P, 2) px: (B, MAX_ZONES) shape ids, (B, MAX_ZONES, 2) frame corners in
-        fine cells, and (B, MAX_ZONES) whether each slot holds a zone."""
+        is `path` (B, P, 2) px and whose pusher is at `pusher` (B, 2) now: (B, MAX_ZONES) shape
+        ids, (B, MAX_ZONES, 2) frame corners in fine cells, and (B, MAX_ZONES) whether each
+        slot holds a zone."""
         batch = len(path)
         wanted = torch.randint(1, MAX_ZONES + 1, (batch,), generator=self.generator)
         wanted[self._uniform(batch) < self.drop] = 0
         ids, corners, placed = [], [], []
         for slot in range(MAX_ZONES):
-            candidates, corner = self._candidates(path)
+            candidates, corner = self._candidates(pusher)
             clear = self._clear(path, candidates, corner) & (slot < wanted)[:, None]
             first = clear.float().argmax(1)
             ids.append(candidates[torch.arange(batch), first])
@@ -175,6 +177,6 @@ class ZoneSampler:
         canvas.index_put_((rows,), mask, accumulate=True)
         return coverage_raster(canvas, self.grid)
 
-    def rasters(self, path: Tensor) -> Tensor:
-        """(B, grid, grid) zone rasters for windows whose pusher path is `path` (B, P, 2)."""
-        return self.paint(*self.place(path))
+    def rasters(self, path: Tensor, pusher: Tensor) -> Tensor:
+        """(B, grid, grid) zone rasters for windows (see `place`)."""
+        return self.paint(*self.place(path, pusher))

@@ -74,6 +74,8 @@ class ConstraintConfig:
     denoising_steps: int | None = None
     timestep_spacing: str = "leading"  # which training timesteps a shorter schedule visits
     eta: float = 0.0  # DDIM: 0 deterministic given the first noise, 1 DDPM-like
+    zone_guidance: float = 1.0  # a zone-aware policy: its noise is the blind one plus this
+    # times the difference the zones make (classifier-free guidance); 1: with the zones alone
 
     def __post_init__(self) -> None:
         for spec in fields(self):  # types as written in a YAML file: say which field is wrong
@@ -107,6 +109,9 @@ class ConstraintConfig:
         if self.timestep_spacing not in SPACINGS:
             raise ValueError(f"configuration {self.name!r}: timestep_spacing must be one of "
                              f"{', '.join(SPACINGS)}")
+        if self.zone_guidance < 0:
+            raise ValueError(f"configuration {self.name!r}: zone_guidance must be "
+                             f"non-negative")
         for name in ("eta", "repair_from", "guide_until"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"configuration {self.name!r}: {name} must be in [0, 1]")
@@ -130,7 +135,7 @@ class ConstraintConfig:
     def sampler_key(self) -> tuple:
         """Configurations with equal keys can share one batch of network calls."""
         return (self.sampler, self.denoising_steps, self.timestep_spacing, self.eta,
-                (self.from_scratch or self.candidates > 1) and self.name)
+                self.zone_guidance, (self.from_scratch or self.candidates > 1) and self.name)
 
 
 class BoundedSafeLoader(yaml.SafeLoader):

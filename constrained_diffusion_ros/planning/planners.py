@@ -94,7 +94,7 @@ class ConstrainedPlanner:
         scheduler and so never imports diffusers, a slow import at start-up."""
         c = self.config
         return DenoisingSampler(self.policy, c.sampler, c.denoising_steps, c.timestep_spacing,
-                                c.eta)
+                                c.eta, c.zone_guidance)
 
     def prepare_sampling(self) -> None:
         """Builds the sampler now, so that the first plan does not wait for it (nor import

@@ -67,10 +67,14 @@ class DenoisingSampler:
 
     def __init__(self, policy: DiffusionPolicy, kind: SchedulerKind = "ddpm",
                  num_inference_steps: int | None = None,
-                 timestep_spacing: TimestepSpacing = "leading", eta: float = 0.0) -> None:
+                 timestep_spacing: TimestepSpacing = "leading", eta: float = 0.0,
+                 zone_guidance: float = 1.0) -> None:
         """`eta` (DDIM only): 0 is deterministic given the first noise, 1 adds DDPM's noise
-        at every step."""
-        self.policy = policy
+        at every step. `zone_guidance` (a zone-aware policy, zones given): the noise is the
+        blind prediction plus this times what the zones change in it (classifier-free
+        guidance: the network was trained with and without them); 1 is the prediction with
+        the zones alone, more pushes plans further from them, at twice the network's rows."""
+        self.policy, self.zone_guidance = policy, zone_guidance
         self.kind = kind
         self.scheduler = make_scheduler(policy.config, kind, timestep_spacing)
         self.num_inference_steps = num_inference_steps or policy.config.num_train_timesteps
@@ -92,6 +96,17 @@ class DenoisingSampler:
         finally:
             self._interrupt = None
 
+    def _guided(self, network: Callable[[torch.Tensor, int], torch.Tensor]
+                ) -> Callable[[torch.Tensor, int], torch.Tensor]:
+        """`network` over (with zones, without) conditions -> classifier-free guided noise."""
+        weight = self.zone_guidance
+
+        def guided(sample: torch.Tensor, index: int) -> torch.Tensor:
+            seeing, blind = network(torch.cat([sample, sample]), index).chunk(2)
+            return blind + weight * (seeing - blind)
+
+        return guided
+
     @torch.no_grad()
     def sample(self, obs_history: torch.Tensor, generator: torch.Generator | None = None,
                hooks: Sequence[SampleHook] = (), zones: RestrictedArea | None = None,
@@ -112,7 +127,12 @@ class DenoisingSampler:
         shape = (cond.shape[0], config.horizon, config.action_dim)
         sample = torch.randn(shape, generator=generator).to(device)
         timesteps = self.scheduler.timesteps
+        guided = raster is not None and self.zone_guidance != 1.0
+        if guided:  # one batch: the rows with the zones, then the same rows without
+            cond = torch.cat([cond, self.policy.condition(obs_history).to(device)])
         network = self.policy.denoiser(timesteps.to(device), cond)
+        if guided:
+            network = self._guided(network)
         levels = [*timesteps.tolist(), None]  # after update i the sample is at level i + 1
         for index in range(len(timesteps)):
             if self._interrupt is not None and self._interrupt():

@@ -7,9 +7,12 @@ if the window's pusher positions and its action chunk keep the pusher's disc cle
 candidates are drawn depends on the observation only, never on the chunk: then the chunks of the
 windows a zone is kept for are the demonstrations' own, restricted to those that keep clear,
 which is the constrained distribution the policy should learn (candidates drawn along the chunk
-would teach that routes run beside zones). Most are anchored near the pusher, where its next
-moves go and a zone says something about the route; the rest anywhere. A share of windows
-(`drop`) gets none, so the network without zones stays the policy it was.
+would teach that routes run beside zones). Half are anchored on the routes the trained policy
+itself plans from the window's observation (`routes`, drawn once before training): such a zone
+is kept only where the demonstration went another way than that route, so it teaches which way
+to go when a zone blocks one; a zone anywhere else is mostly one the demonstration would have
+kept clear of anyway. Of the rest, most are anchored near the pusher and some anywhere. A share
+of windows (`drop`) gets none, so the network without zones stays the policy it was.
 
 Everything a batch needs is a lookup in precomputed masks: the occupancy of each shape at the
 raster's fine points (to paint the condition exactly as `zones/raster.py` samples real zones),
@@ -34,7 +37,9 @@ FRAME_PX = 288.0  # side of a shape's local frame, centred on its anchor
 REACH_PX = 120.0  # every shape lies within this of its anchor (it fits its frame, grown)
 CHECK_PX = 4.0  # cell of the grown masks the rejection looks points up in
 CHECK_SLACK_PX = 3.0  # grown by this beyond the disc: a point may sit anywhere in its cell
-NEAR_PUSHER = 0.7  # share of candidates anchored near the pusher
+ON_ROUTE = 0.5  # share of candidates anchored on a route the policy plans (where there are)
+ROUTE_PX = 40.0  # how far from a waypoint of that route such an anchor may be
+NEAR_PUSHER = 0.6  # of the others, the share anchored near the pusher
 NEAR_PX = 160.0  # how far from the pusher such an anchor may be
 TRIES = 8  # candidates per zone of a window
 
@@ -121,17 +126,27 @@ class ZoneSampler:
     def _uniform(self, *shape: int) -> Tensor:
         return torch.rand(shape, generator=self.generator)
 
-    def _candidates(self, pusher: Tensor) -> tuple[Tensor, Tensor]:
-        """For (B, 2) pusher positions: (B, TRIES) shape ids and (B, TRIES, 2) frame corners,
-        in whole fine cells from the workspace's origin."""
+    def _around(self, centres: Tensor, reach: float) -> Tensor:
+        """(B, TRIES, 2) points at most `reach` from `centres` (B, TRIES, 2), uniform in angle
+        and distance."""
+        angle = self._uniform(*centres.shape[:2]) * 2 * torch.pi
+        distance = reach * self._uniform(*centres.shape[:2], 1)
+        return centres + torch.stack([angle.cos(), angle.sin()], -1) * distance
+
+    def _candidates(self, pusher: Tensor, routes: Tensor | None) -> tuple[Tensor, Tensor]:
+        """For (B, 2) pusher positions and (B, W, 2) waypoints of the policy's routes (or
+        None): (B, TRIES) shape ids and (B, TRIES, 2) frame corners, in whole fine cells from
+        the workspace's origin."""
         batch = len(pusher)
         ids = torch.randint(len(self.bank.shapes), (batch, TRIES), generator=self.generator)
-        angle = self._uniform(batch, TRIES) * 2 * torch.pi
-        offset = torch.stack([angle.cos(), angle.sin()], -1) * NEAR_PX * self._uniform(
-            batch, TRIES, 1)
+        near = self._around(pusher[:, None].expand(batch, TRIES, 2), NEAR_PX)
         anywhere = self.origin + self._uniform(batch, TRIES, 2) * self.size
-        near = self._uniform(batch, TRIES, 1) < NEAR_PUSHER
-        anchor = torch.where(near, pusher[:, None] + offset, anywhere)
+        anchor = torch.where(self._uniform(batch, TRIES, 1) < NEAR_PUSHER, near, anywhere)
+        if routes is not None:
+            picked = routes[torch.arange(batch)[:, None], torch.randint(
+                routes.shape[1], (batch, TRIES), generator=self.generator)]
+            on_route = self._around(picked, ROUTE_PX)
+            anchor = torch.where(self._uniform(batch, TRIES, 1) < ON_ROUTE, on_route, anchor)
         corner = torch.round((anchor - self.origin - FRAME_PX / 2) / self.bank.fine_px)
         return ids, corner.long()
 
@@ -145,17 +160,19 @@ class ZoneSampler:
         hit = self.bank.grown[ids[:, :, None], local[..., 1], local[..., 0]] & inside
         return ~hit.any(-1)
 
-    def place(self, path: Tensor, pusher: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def place(self, path: Tensor, pusher: Tensor, routes: Tensor | None = None
+              ) -> tuple[Tensor, Tensor, Tensor]:
         """Zones for windows whose pusher path (its observed positions and its action chunk)
-        is `path` (B, P, 2) px and whose pusher is at `pusher` (B, 2) now: (B, MAX_ZONES) shape
-        ids, (B, MAX_ZONES, 2) frame corners in fine cells, and (B, MAX_ZONES) whether each
-        slot holds a zone."""
+        is `path` (B, P, 2) px, whose pusher is at `pusher` (B, 2) now, and whose policy's
+        routes pass `routes` (B, W, 2) (None: none known): (B, MAX_ZONES) shape ids,
+        (B, MAX_ZONES, 2) frame corners in fine cells, and (B, MAX_ZONES) whether each slot
+        holds a zone."""
         batch = len(path)
         wanted = torch.randint(1, MAX_ZONES + 1, (batch,), generator=self.generator)
         wanted[self._uniform(batch) < self.drop] = 0
         ids, corners, placed = [], [], []
         for slot in range(MAX_ZONES):
-            candidates, corner = self._candidates(pusher)
+            candidates, corner = self._candidates(pusher, routes)
             clear = self._clear(path, candidates, corner) & (slot < wanted)[:, None]
             first = clear.float().argmax(1)
             ids.append(candidates[torch.arange(batch), first])
@@ -177,6 +194,28 @@ class ZoneSampler:
         canvas.index_put_((rows,), mask, accumulate=True)
         return coverage_raster(canvas, self.grid)
 
-    def rasters(self, path: Tensor, pusher: Tensor) -> Tensor:
+    def rasters(self, path: Tensor, pusher: Tensor, routes: Tensor | None = None) -> Tensor:
         """(B, grid, grid) zone rasters for windows (see `place`)."""
-        return self.paint(*self.place(path, pusher))
+        return self.paint(*self.place(path, pusher, routes))
+
+
+def policy_routes(policy, windows, per_window: int, seed: int, batch: int = 2048,
+                  quiet: bool = False) -> Tensor:
+    """(windows, per_window * n_action_steps, 2): the executed waypoints of `per_window` plans
+    (DDIM 10, no zones) the trained `policy` makes from each window's observation, where
+    `ZoneSampler` anchors zones that block a route the policy would take."""
+    from tqdm import tqdm
+
+    from constrained_diffusion_ros.sampling.sampler import DenoisingSampler
+
+    config = policy.config
+    sampler = DenoisingSampler(policy, "ddim", 10, "trailing")
+    executed = slice(config.first_executed, config.first_executed + config.n_action_steps)
+    generator = torch.Generator().manual_seed(seed)
+    ids = torch.arange(len(windows)).repeat_interleave(per_window)
+    routes = []
+    for start in tqdm(range(0, len(ids), batch), desc="routes the policy plans", unit="batch",
+                      disable=quiet):
+        observations, _ = windows.batch(ids[start:start + batch])
+        routes.append(sampler.sample(observations, generator)[:, executed])
+    return torch.cat(routes).reshape(len(windows), -1, 2)

@@ -9,20 +9,16 @@ of range are refused with the parameter's name and range.
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
-
-from rcl_interfaces.msg import (
-    FloatingPointRange,
-    IntegerRange,
-    ParameterDescriptor,
-    ParameterType,
-    SetParametersResult,
-)
-from rclpy.node import Node
-from rclpy.parameter import Parameter
+from typing import TYPE_CHECKING
 
 from msg_schemas.contract import NAMESPACE, SERVICES, TOPICS
+
+if TYPE_CHECKING:  # rclpy is imported where a node is built: `--help` comes without it
+    from rcl_interfaces.msg import ParameterDescriptor
+    from rclpy.node import Node
 
 Value = bool | int | float | str | list
 
@@ -62,6 +58,8 @@ class Param:
         return f"{low}, {high}"
 
     def descriptor(self) -> ParameterDescriptor:
+        from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+
         descriptor = ParameterDescriptor(description=self.description, read_only=self.read_only)
         if isinstance(self.default, float):
             descriptor.dynamic_typing = True  # an integer is taken too; `reason` checks it
@@ -80,6 +78,9 @@ class Param:
 def declare(node: Node, params: Sequence[Param]) -> dict[str, Value]:
     """Declares `params` on `node` and returns their start values, checked (ValueError with the
     reason otherwise); later changes are checked the same way before they are taken."""
+    from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
+    from rclpy.parameter import Parameter
+
     by_name = {param.name: param for param in params}
     doubles = {param.name for param in params if isinstance(param.default, float)}
     values = {}
@@ -145,3 +146,15 @@ def usage(node_name: str, summary: str, params: Sequence[Param]) -> str:
         if endpoint.publisher == node_name:
             lines.append(f"  serves {endpoint.name} ({endpoint.type}): {endpoint.description}")
     return "\n".join(lines)
+
+
+def answered_help(args: list[str] | None, name: str, summary: str,
+                  parameters: Sequence[Param]) -> bool:
+    """Prints the node's usage if `-h` or `--help` comes before `--ros-args`. Here, with the
+    table, so that a node's `main` answers before it imports rclpy, torch or the model."""
+    argv = sys.argv[1:] if args is None else list(args)
+    own = argv[:argv.index("--ros-args")] if "--ros-args" in argv else argv
+    if "-h" in own or "--help" in own:
+        print(usage(name, summary, parameters))
+        return True
+    return False

@@ -28,7 +28,7 @@ from rclpy.subscription import Subscription
 from rclpy.timer import Timer
 from rclpy.utilities import remove_ros_args
 
-from msg_schemas.parameters import Param, usage
+from msg_schemas.parameters import Param, answered_help
 from msg_schemas.text import one_line
 
 BAD_ARGUMENTS = 2  # exit code of a command line rclpy cannot parse, as argparse's
@@ -92,17 +92,6 @@ class StartupPhases:
     def text(self) -> str:
         parts = [] if self.imports is None else [("imports", self.imports)]
         return ", ".join(f"{name} {seconds:.1f} s" for name, seconds in parts + self.phases)
-
-
-def answered_help(args: list[str] | None, name: str, summary: str,
-                  parameters: Sequence[Param]) -> bool:
-    """Prints the node's usage if `-h` or `--help` comes before `--ros-args`."""
-    argv = sys.argv[1:] if args is None else list(args)
-    own = argv[:argv.index("--ros-args")] if "--ros-args" in argv else argv
-    if "-h" in own or "--help" in own:
-        print(usage(name, summary, parameters))
-        return True
-    return False
 
 
 def ros_arguments_problem(args: list[str] | None) -> str | None:

@@ -6,17 +6,23 @@ planning process). The simulator runs already, so the first setpoint comes as so
 can answer. Idle, then beside busy processes that the script starts and stops itself. Prints
 figures; asserts nothing.
 
-Run: OMP_NUM_THREADS=1 python scripts/bench_startup.py [--runs 3]
+With --help-times: how long each console script takes to answer `--help` instead (issue 45:
+at once, its heavy imports come after the arguments are read), the median over --runs.
+
+Run: OMP_NUM_THREADS=1 python scripts/bench_startup.py [--runs 3] [--help-times]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
+from importlib.metadata import distribution
 from pathlib import Path
 
 from bench_realtime import Client, add_condition_arguments, background_load
@@ -32,6 +38,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--configuration", default="ddim10_r_g10_p_safe")
     parser.add_argument("--runs", type=int, default=3, help="start-ups per condition")
     parser.add_argument("--timeout", type=float, default=120.0, help="s to wait for a setpoint")
+    parser.add_argument("--help-times", action="store_true",
+                        help="time each console script's --help instead of the node's start-up")
     add_condition_arguments(parser)
     return parser
 
@@ -59,8 +67,31 @@ def one_start(args: argparse.Namespace, log_dir: Path) -> tuple[float, float, st
         children.stop_all()
 
 
+def help_times(args: argparse.Namespace) -> int:
+    """Each installed console script's `--help`, timed from its start to its exit: the median
+    and the slowest of --runs, per condition."""
+    scripts = sorted(e.name for e in distribution("constrained_diffusion_ros").entry_points
+                     if e.group == "console_scripts")
+    environment = {**os.environ, "OMP_NUM_THREADS": "1"}
+    for condition in args.conditions:
+        print(f"\n== {condition}: --help, {args.runs} runs each ==", flush=True)
+        with background_load(args.load if condition == "loaded" else 0):
+            for name in scripts:
+                seconds = []
+                for _ in range(args.runs):
+                    started = time.perf_counter()
+                    subprocess.run([str(Path(sys.executable).parent / name), "--help"],
+                                   stdout=subprocess.DEVNULL, env=environment, check=True)
+                    seconds.append(time.perf_counter() - started)
+                print(f"  {name:>16}: median {statistics.median(seconds):.2f} s, max "
+                      f"{max(seconds):.2f} s", flush=True)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.help_times:
+        return help_times(args)
     base = Path(tempfile.mkdtemp(prefix="bench_startup_"))
     print(f"policy node start-up, realtime, {args.configuration}; logs in {base}")
     for condition in args.conditions:

@@ -8,10 +8,10 @@ reference environment of Chi et al., Diffusion Policy (RSS 2023).
 
 from __future__ import annotations
 
+from functools import cache
 from numbers import Integral
 
 import numpy as np
-import shapely
 
 WORKSPACE_SIZE = 512.0
 AGENT_RADIUS = 15.0
@@ -139,17 +139,27 @@ def tee_polygons(pose: object) -> list[np.ndarray]:
 
 
 def _tee_geoms(poses: np.ndarray) -> np.ndarray:
+    import shapely  # here: the commands that only read the scene's numbers start without it
+
     return shapely.polygons(_transform(TEE_OUTLINE, poses))
 
 
-_GOAL_GEOM = _tee_geoms(GOAL_POSE[None])[0]
-_GOAL_AREA = float(shapely.area(_GOAL_GEOM))
+@cache
+def _goal() -> tuple[object, float]:
+    """The goal T's geometry and area, built at the first coverage asked for."""
+    import shapely
+
+    geom = _tee_geoms(GOAL_POSE[None])[0]
+    return geom, float(shapely.area(geom))
 
 
 def coverage(block_poses: object) -> np.ndarray:
     """Fraction of the goal T covered by the block T for each pose: (N, 3) -> (N,)."""
+    import shapely
+
+    goal, goal_area = _goal()
     blocks = _tee_geoms(_poses(block_poses))
-    return shapely.area(shapely.intersection(blocks, _GOAL_GEOM)) / _GOAL_AREA
+    return shapely.area(shapely.intersection(blocks, goal)) / goal_area
 
 
 def score_from_coverage(cov: np.ndarray) -> np.ndarray:

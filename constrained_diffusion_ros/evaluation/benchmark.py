@@ -12,8 +12,6 @@ import json
 import sys
 import time
 
-import torch
-
 from constrained_diffusion_ros.cli import (
     ArgumentParser,
     add_compute_arguments,
@@ -21,12 +19,9 @@ from constrained_diffusion_ros.cli import (
     positive_int,
     run_command,
 )
-from constrained_diffusion_ros.evaluation.rollout import rollout
 from constrained_diffusion_ros.paths import default_model_dir
 from constrained_diffusion_ros.planning.config import ConstraintConfig
-from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.policy.schedulers import SPACINGS
-from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -48,6 +43,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
+    import torch
+
+    from constrained_diffusion_ros.evaluation.rollout import rollout
+    from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
+    from constrained_diffusion_ros.pusht import PUSHT_ROBOT
+
     policy = load_policy_for(args)
     unconstrained = ConstraintConfig("none", sampler=args.sampler,
                                      denoising_steps=args.denoising_steps,

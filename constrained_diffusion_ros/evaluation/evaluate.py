@@ -13,9 +13,7 @@ import json
 import sys
 import time
 from pathlib import Path
-
-import torch
-from tqdm import tqdm
+from typing import TYPE_CHECKING
 
 from constrained_diffusion_ros.cli import (
     ArgumentParser,
@@ -24,11 +22,10 @@ from constrained_diffusion_ros.cli import (
     positive_int,
     run_command,
 )
-from constrained_diffusion_ros.evaluation import report
-from constrained_diffusion_ros.evaluation.configurations import load_evaluated
-from constrained_diffusion_ros.evaluation.runner import CellResult, evaluate_configurations
-from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
+
+if TYPE_CHECKING:  # torch and shapely come with it: imported once the arguments are read
+    from constrained_diffusion_ros.evaluation.runner import CellResult
 
 DEFAULT_FIGURE = ("center_0.2", "r_g10_p_safe")
 
@@ -77,6 +74,8 @@ def select(available: dict, wanted: list[str], kind: str) -> list:
 def reusable_cells(path: Path, episodes: int) -> dict[tuple[str, str], CellResult]:
     """The cells of an earlier report run on `episodes` episodes and with intervals, by
     (scenario, configuration); ValueError in one line if the file is not a report."""
+    from constrained_diffusion_ros.evaluation.runner import CellResult
+
     try:
         rows = json.loads(path.read_text())
         cells = {(r["scenario"], r["configuration"]): CellResult(**r) for r in rows}
@@ -100,6 +99,14 @@ def figure_cell(args: argparse.Namespace, evaluated: set[tuple[str, str]]) -> tu
 
 
 def run(args: argparse.Namespace) -> int:
+    import torch
+    from tqdm import tqdm
+
+    from constrained_diffusion_ros.evaluation import report
+    from constrained_diffusion_ros.evaluation.configurations import load_evaluated
+    from constrained_diffusion_ros.evaluation.runner import evaluate_configurations
+    from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
+
     directory = Path(args.config_dir)
     if not directory.is_dir():
         raise ValueError(f"--config-dir {directory}: no such directory")

@@ -19,6 +19,7 @@ import re
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import yaml
@@ -31,17 +32,15 @@ from constrained_diffusion_ros.evaluation.bags import (
     trial_steps,
 )
 from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_domain_id
-from constrained_diffusion_ros.evaluation.rollout import RolloutLog
-from constrained_diffusion_ros.evaluation.scenarios import Scenario, load_scenarios
+from constrained_diffusion_ros.nodes.zone_publisher import MAX_KEEPOUT_CELLS
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.planning.config import load_configurations
-from constrained_diffusion_ros.policy.weights import load_policy
-from constrained_diffusion_ros.pusht import PUSHT_ROBOT
-from constrained_diffusion_ros.view.replay import write_scene
-from constrained_diffusion_ros.zones.grid import MaskCaps
 from msg_schemas import NAMESPACE, OPTIONAL_NODES, SERVICES, TOPICS
 from msg_schemas.conversions import point_of, pose2d_of, step_of_stamp, zones_shown
 from sim_bridge import CONTROL_HZ
+
+if TYPE_CHECKING:  # torch and shapely come with these: imported once the arguments are read
+    from constrained_diffusion_ros.evaluation.rollout import RolloutLog
 
 # One torch thread for the policy node: on a two-core machine a second thread makes an idle
 # trial no faster, and beside any other load it fights that load for the cores, more than
@@ -56,7 +55,6 @@ RECORDING_GRACE_S = 10.0
 # (32768 on), and a trial starts five participants; above 232 DDS has no ports for it at all.
 DOMAIN_IDS = range(0, 102)
 MAX_KEEPOUT_CELL = 512.0  # px: the zone publisher's keepout_resolution range is [0, 512]
-MAX_KEEPOUT_CELLS = math.isqrt(MaskCaps.cells)  # a side of the mask, as the zone publisher
 
 
 def domain_id(text: str) -> int:
@@ -134,6 +132,8 @@ def run_trial(args: argparse.Namespace) -> dict:
     from std_srvs.srv import Trigger
     from visualization_msgs.msg import MarkerArray
 
+    from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
+    from constrained_diffusion_ros.policy.weights import load_policy
     from msg_schemas import qos_profile
     from msg_schemas.spin import spin_until
 
@@ -333,6 +333,7 @@ def matched(log: Path, topic: str, side: str) -> int:
 
 def trial_log(received: dict, seed: int, steps: int) -> RolloutLog:
     """The recorded trial as a RolloutLog, so its metrics come from the evaluation's code."""
+    from constrained_diffusion_ros.evaluation.rollout import RolloutLog
     from sim_bridge import coverage
 
     for kind, last in (("pusher", steps), ("block", steps), ("setpoint", steps - 1)):
@@ -364,6 +365,9 @@ def make_figures(output: Path, scenario, args: argparse.Namespace, received: dic
     import imageio.v3 as iio
 
     from constrained_diffusion_ros.evaluation.report import plot_frames
+    from constrained_diffusion_ros.evaluation.scenarios import Scenario
+    from constrained_diffusion_ros.pusht import PUSHT_ROBOT
+    from constrained_diffusion_ros.view.replay import write_scene
     from sim_bridge import render_scene
 
     recorded = None

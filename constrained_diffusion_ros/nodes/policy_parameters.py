@@ -1,27 +1,38 @@
 """The policy node's parameters (declared with descriptors; `--help` and the README's table are
-made from them) and the plug-in area they name."""
+made from them) and the plug-in area they name.
+
+Importable without torch or rclpy, so that `policy_node --help` answers at once: the core's
+defaults the table shows are written out below, and the core is imported where the values are
+used."""
 
 from __future__ import annotations
 
 import pickle
+from typing import TYPE_CHECKING
 
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
-from constrained_diffusion_ros.planning.config import safe_yaml
 from constrained_diffusion_ros.planning.os_scheduling import CLOCK_PRIORITY, EXECUTOR_PRIORITY
-from constrained_diffusion_ros.planning.robot import RobotModel
-from constrained_diffusion_ros.policy.device import DEVICES
-from constrained_diffusion_ros.policy.runtime import RUNTIMES
-from constrained_diffusion_ros.pusht import PUSHT_ROBOT
-from constrained_diffusion_ros.zones.area import Bounds, RestrictedArea
-from constrained_diffusion_ros.zones.grid import DEFAULT_THRESHOLD, MaskCaps
-from constrained_diffusion_ros.zones.live import DEFAULT_MAX_VERTICES, DEFAULT_MAX_ZONES, LiveZones
-from constrained_diffusion_ros.zones.motion import DEFAULT_SPEED_BOUND, HEADROOM
-from constrained_diffusion_ros.zones.plugins import load_area
 from msg_schemas.parameters import Param
 from msg_schemas.text import one_line
+from sim_bridge.scene import AGENT_RADIUS, CONTROL_HZ, K_P, K_V, SIM_HZ, WORKSPACE_SIZE
+
+if TYPE_CHECKING:
+    from constrained_diffusion_ros.planning.robot import RobotModel
+    from constrained_diffusion_ros.zones.area import Bounds, RestrictedArea
+    from constrained_diffusion_ros.zones.live import LiveZones
 
 MODES = ("lockstep", "realtime")
 ROBOT_FIELDS = ("pusher_radius", "kp", "kv", "control_hz", "physics_hz")  # and workspace
+
+# The core's defaults, written out: the modules that own them import torch. The owner of each is
+# named; test/unit/test_help_imports.py keeps them equal (the robot's too: pusht.PUSHT_ROBOT,
+# read here from the scene's facts as pusht.py reads them).
+DEVICES = "cpu, cuda or cuda:N"  # policy.device.DEVICES
+RUNTIMES = ("torch", "onnxruntime")  # policy.runtime.RUNTIMES
+DEFAULT_THRESHOLD = 65  # zones.grid.DEFAULT_THRESHOLD
+MASK_PIECES, MASK_VERTICES, MASK_CELLS = 32, 1024, 4096 * 4096  # zones.grid.MaskCaps()
+DEFAULT_MAX_ZONES, DEFAULT_MAX_VERTICES = 32, 64  # zones.live
+DEFAULT_SPEED_BOUND, HEADROOM = 300.0, 1.5  # zones.motion
 
 PARAMETERS = (
     Param("model", str(default_model_dir()), "policy directory (config.json + "
@@ -91,9 +102,9 @@ PARAMETERS = (
           read_only=True, low=1),
     Param("max_vertices", DEFAULT_MAX_VERTICES, "vertices per zone at most", read_only=True,
           low=3),
-    Param("max_mask_pieces", MaskCaps.pieces, "keep-out mask: pieces (separate regions) at "
+    Param("max_mask_pieces", MASK_PIECES, "keep-out mask: pieces (separate regions) at "
           "most; a finer mask is refused", read_only=True, low=1),
-    Param("max_mask_vertices", MaskCaps.vertices, "keep-out mask: vertices of all its pieces "
+    Param("max_mask_vertices", MASK_VERTICES, "keep-out mask: vertices of all its pieces "
           "at most; a finer mask is refused", read_only=True, low=4),
     Param("keepout_threshold", DEFAULT_THRESHOLD, "keep-out mask cells at or above it are "
           "restricted (nav2's occupied threshold, 0..100)", low=1, high=100),
@@ -103,20 +114,19 @@ PARAMETERS = (
     Param("restricted_area_parameters", "", "its keyword arguments, a YAML mapping, e.g. "
           "'{config_file: camera_zones.yaml}'", read_only=True),
     # What the planner knows of the robot (PushT's by default), read at start.
-    Param("robot.pusher_radius", float(PUSHT_ROBOT.pusher_radius),
+    Param("robot.pusher_radius", float(AGENT_RADIUS),
           "px; zones grown by it keep the pusher's body out", read_only=True, low=0.0),
-    Param("robot.workspace", [float(v) for v in PUSHT_ROBOT.workspace],
+    Param("robot.workspace", [0.0, 0.0, WORKSPACE_SIZE, WORKSPACE_SIZE],
           "px: x_min, y_min, x_max, y_max; outside counts as restricted", read_only=True),
-    Param("robot.kp", float(PUSHT_ROBOT.kp), "PD gain on position (1/s^2)", read_only=True,
+    Param("robot.kp", float(K_P), "PD gain on position (1/s^2)", read_only=True,
           low=0.0),
-    Param("robot.kv", float(PUSHT_ROBOT.kv), "PD gain on velocity (1/s)", read_only=True,
+    Param("robot.kv", float(K_V), "PD gain on velocity (1/s)", read_only=True,
           low=0.0),
-    Param("robot.control_hz", float(PUSHT_ROBOT.control_hz), "setpoints per second; stamps "
+    Param("robot.control_hz", float(CONTROL_HZ), "setpoints per second; stamps "
           "are control steps at this rate", read_only=True, low=0.1),
-    Param("robot.physics_hz", float(PUSHT_ROBOT.physics_hz), "PD integration rate the shield "
+    Param("robot.physics_hz", float(SIM_HZ), "PD integration rate the shield "
           "predicts the pusher with", read_only=True, low=0.1),
 )
-
 
 
 def weaker_setting(name: str, old: object, new: object) -> str | None:
@@ -132,6 +142,9 @@ def weaker_setting(name: str, old: object, new: object) -> str | None:
 
 def robot_model(values: dict) -> RobotModel:
     """The robot the parameters describe (PushT's pusher in the observation)."""
+    from constrained_diffusion_ros.planning.robot import RobotModel
+    from constrained_diffusion_ros.pusht import PUSHT_ROBOT
+
     return RobotModel(**{name: values[f"robot.{name}"] for name in ROBOT_FIELDS},
                       workspace=tuple(values["robot.workspace"]),
                       pusher_in_observation=PUSHT_ROBOT.pusher_in_observation)
@@ -140,6 +153,8 @@ def robot_model(values: dict) -> RobotModel:
 def live_zones(values: dict, workspace: Bounds, reaction_s: float) -> LiveZones:
     """The zones in force: their caps and the plug-in area, which must pickle where a planning
     process will get it; a moving zone grown for a robot that reacts in `reaction_s`."""
+    from constrained_diffusion_ros.zones.live import LiveZones
+
     area = plug_in_area(values["restricted_area"], values["restricted_area_parameters"],
                         workspace)
     if values["mode"] == "realtime" and values["planning_process"]:
@@ -152,6 +167,9 @@ def live_zones(values: dict, workspace: Bounds, reaction_s: float) -> LiveZones:
 def plug_in_area(spec: str, parameters: str, workspace: Bounds) -> RestrictedArea | None:
     """The plug-in check named by the parameters, probed over `workspace`, or None;
     ValueError with one line."""
+    from constrained_diffusion_ros.planning.config import safe_yaml
+    from constrained_diffusion_ros.zones.plugins import load_area
+
     if not spec:
         return None
     keywords = safe_yaml(parameters, "parameter restricted_area_parameters") \

@@ -15,11 +15,7 @@ import math
 import sys
 import time
 from pathlib import Path
-
-import torch
-from safetensors import SafetensorError
-from safetensors.torch import load_file, save_file
-from tqdm import tqdm
+from typing import TYPE_CHECKING
 
 from constrained_diffusion_ros.cli import (
     ArgumentParser,
@@ -28,16 +24,12 @@ from constrained_diffusion_ros.cli import (
     run_command,
     use_compute_arguments,
 )
-from constrained_diffusion_ros.policy.config import PolicyConfig
-from constrained_diffusion_ros.policy.device import resolve_device
-from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
-from constrained_diffusion_ros.policy.normalizer import MinMaxNormalizer
-from constrained_diffusion_ros.policy.weights import WEIGHTS_FILE, load_policy, save_policy
-from constrained_diffusion_ros.pusht import PUSHT_ROBOT
-from constrained_diffusion_ros.training.dataset import WindowSampler, load_demonstrations
-from constrained_diffusion_ros.training.zone_shapes import ShapeBank, ZoneSampler
-from constrained_diffusion_ros.zones.raster import fine_cell_px
 from msg_schemas.text import one_line
+
+if TYPE_CHECKING:  # torch, the network and the dataset are imported once the arguments are read
+    import torch
+
+    from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 
 CHECKPOINT_DIR = "checkpoint"
 ZONE_GRID = 32  # a zone-aware policy's raster: 16 px cells over PushT's 512 px
@@ -54,12 +46,14 @@ class EmaWeights:
         self.power, self.max_decay = power, max_decay
         self.shadow = {k: v.detach().clone() for k, v in model.state_dict().items()}
 
-    @torch.no_grad()
     def update(self, model: torch.nn.Module, step: int) -> None:
-        decay = min(self.max_decay, 1.0 - (1.0 + step) ** -self.power)
-        current = model.state_dict()
-        torch._foreach_lerp_(list(self.shadow.values()),
-                             [current[k] for k in self.shadow], 1.0 - decay)
+        import torch
+
+        with torch.no_grad():
+            decay = min(self.max_decay, 1.0 - (1.0 + step) ** -self.power)
+            current = model.state_dict()
+            torch._foreach_lerp_(list(self.shadow.values()),
+                                 [current[k] for k in self.shadow], 1.0 - decay)
 
 
 def cosine_with_warmup(step: int, warmup: int, total: int) -> float:
@@ -72,6 +66,9 @@ def cosine_with_warmup(step: int, warmup: int, total: int) -> float:
 def save_checkpoint(directory: Path, step: int, policy: DiffusionPolicy, ema: EmaWeights,
                     optimizer: torch.optim.Optimizer, generator: torch.Generator,
                     losses: list[float]) -> None:
+    import torch
+    from safetensors.torch import save_file
+
     directory.mkdir(parents=True, exist_ok=True)
     tensors = {f"model.{k}": v.contiguous() for k, v in policy.unet.state_dict().items()}
     tensors.update({f"ema.{k}": v.contiguous() for k, v in ema.shadow.items()})
@@ -91,6 +88,9 @@ def load_checkpoint(directory: Path, policy: DiffusionPolicy, ema: EmaWeights,
                     optimizer: torch.optim.Optimizer, generator: torch.Generator,
                     device: torch.device | str = "cpu") -> tuple[int, list[float]]:
     """Continues a checkpoint on `device` (it is written from any device, read on any)."""
+    import torch
+    from safetensors.torch import load_file
+
     meta = json.loads((directory / "state.json").read_text())
     if meta["policy"] != json.loads(json.dumps(policy.config.to_dict())):
         raise ValueError(f"checkpoint in {directory} was made with another configuration")
@@ -113,6 +113,7 @@ def load_checkpoint(directory: Path, policy: DiffusionPolicy, ema: EmaWeights,
 
 def plot_losses(losses: list[float], path: Path, title: str) -> None:
     import matplotlib
+    import torch
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -133,6 +134,13 @@ def starting_policy(args: argparse.Namespace, demos) -> DiffusionPolicy:
     """The network training starts from: fresh, or (`--init-from`) a trained policy's weights,
     made zone-aware with `--zones`: the condition's new inputs get zero weights, so the network
     starts as exactly the policy it was, and learns what the zones add."""
+    import torch
+
+    from constrained_diffusion_ros.policy.config import PolicyConfig
+    from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
+    from constrained_diffusion_ros.policy.normalizer import MinMaxNormalizer
+    from constrained_diffusion_ros.policy.weights import load_policy
+
     zone_grid = ZONE_GRID if args.zones else 0
     if args.init_from is None:
         normalizer = {"obs": MinMaxNormalizer.fit(demos.observations).to_dict(),
@@ -152,6 +160,16 @@ def starting_policy(args: argparse.Namespace, demos) -> DiffusionPolicy:
 
 
 def train(args: argparse.Namespace) -> dict:
+    import torch
+    from safetensors import SafetensorError
+    from tqdm import tqdm
+
+    from constrained_diffusion_ros.policy.weights import save_policy
+    from constrained_diffusion_ros.pusht import PUSHT_ROBOT
+    from constrained_diffusion_ros.training.dataset import WindowSampler, load_demonstrations
+    from constrained_diffusion_ros.training.zone_shapes import ShapeBank, ZoneSampler
+    from constrained_diffusion_ros.zones.raster import fine_cell_px
+
     device = use_compute_arguments(args)
     torch.manual_seed(args.seed)
     demos = load_demonstrations(args.dataset)
@@ -268,6 +286,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
+    from constrained_diffusion_ros.policy.device import resolve_device
+    from constrained_diffusion_ros.policy.weights import WEIGHTS_FILE
+
     output = Path(args.output)
     checkpoint = output / CHECKPOINT_DIR / "state.json"
     if args.resume and (output / WEIGHTS_FILE).exists() and not checkpoint.exists():

@@ -159,7 +159,7 @@ def test_one_chunk_loop_drives_the_evaluation_lockstep_and_the_live_node() -> No
     """The evaluation's rollout and the policy node (both modes) run `ChunkLoop`; no other
     module keeps an action queue of its own, so there is one replan rule."""
     package = REPO / "constrained_diffusion_ros"
-    for driver in ("evaluation/rollout.py", "nodes/policy_node.py"):
+    for driver in ("evaluation/rollout.py", "nodes/policy_node_impl.py"):
         assert "ChunkLoop" in {node.id for node in ast.walk(ast.parse(
             (package / driver).read_text())) if isinstance(node, ast.Name)}, driver
     queue_owners = {path.relative_to(package).as_posix() for path in package.rglob("*.py")

@@ -180,7 +180,7 @@ def test_a_waypoint_outside_the_workspace_violates_with_or_without_zones(
 GUARD_ONLY = """
 import sys
 import numpy as np
-import constrained_diffusion_ros.nodes.policy_node  # what the node imports
+import constrained_diffusion_ros.nodes.policy_node_impl  # what the node imports
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.planning.chunk_loop import warm_up
 from constrained_diffusion_ros.planning.config import load_configurations

@@ -6,8 +6,9 @@ anywhere), each scenario's zones laid over them; states whose disc already touch
 left out. For every state one plan with each condition from the same noise (DDIM 10); a plan
 enters the zones if any waypoint of its executed part lies in the zones grown by the pusher's
 radius. Prints, per scenario: the states kept, the share of plans that enter without the
-condition and with it, and among the states whose blind plan enters, the share the condition
-keeps out. A policy that does not see zones prints the same figure twice. Asserts nothing.
+condition and with it (`--guidance`: its zone_guidance), and among the states whose blind plan
+enters, the share the condition keeps out. A policy that does not see zones prints the same
+figure twice. Asserts nothing.
 
   OMP_NUM_THREADS=2 .venv/bin/python scripts/zone_aware_plans.py --model models/pusht_lowdim_zones
 """
@@ -41,6 +42,8 @@ def main() -> int:
     parser.add_argument("--states", type=int, default=1000, help="demonstration states drawn")
     parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS))
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--guidance", type=float, default=1.0,
+                        help="zone_guidance of the plans that see the zones")
     args = parser.parse_args()
     policy = load_policy(args.model)
     config = policy.config
@@ -50,11 +53,11 @@ def main() -> int:
     chosen = torch.randperm(len(windows), generator=generator)[:args.states]
     observations, _ = windows.batch(chosen)
     scenarios = load_scenarios(config_dir() / "scenarios.yaml")
-    sampler = DenoisingSampler(policy, "ddim", 10, "trailing")
+    sampler = DenoisingSampler(policy, "ddim", 10, "trailing", zone_guidance=args.guidance)
     executed = slice(config.first_executed, config.first_executed + config.n_action_steps)
     radius = PUSHT_ROBOT.pusher_radius
     print(f"{args.model}: sees zones {config.sees_zones}; {args.states} demonstration states, "
-          f"DDIM 10, seed {args.seed}")
+          f"DDIM 10, seed {args.seed}, zone guidance {args.guidance}")
     print(f"{'scenario':<16}{'states':>8}{'blind enter':>13}{'seeing enter':>14}"
           f"{'kept out':>10}")
     for name in args.scenarios:

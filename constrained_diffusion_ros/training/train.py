@@ -34,6 +34,7 @@ if TYPE_CHECKING:  # torch, the network and the dataset are imported once the ar
 CHECKPOINT_DIR = "checkpoint"
 ZONE_GRID = 32  # a zone-aware policy's raster: 16 px cells over PushT's 512 px
 SHAPES = 4096  # zone shapes drawn for training
+ROUTES_PER_WINDOW = 3  # plans of the --init-from policy per window, where zones are anchored
 
 
 class EmaWeights:
@@ -164,10 +165,14 @@ def train(args: argparse.Namespace) -> dict:
     from safetensors import SafetensorError
     from tqdm import tqdm
 
-    from constrained_diffusion_ros.policy.weights import save_policy
+    from constrained_diffusion_ros.policy.weights import load_policy, save_policy
     from constrained_diffusion_ros.pusht import PUSHT_ROBOT
     from constrained_diffusion_ros.training.dataset import WindowSampler, load_demonstrations
-    from constrained_diffusion_ros.training.zone_shapes import ShapeBank, ZoneSampler
+    from constrained_diffusion_ros.training.zone_shapes import (
+        ShapeBank,
+        ZoneSampler,
+        policy_routes,
+    )
     from constrained_diffusion_ros.zones.raster import fine_cell_px
 
     device = use_compute_arguments(args)
@@ -177,13 +182,17 @@ def train(args: argparse.Namespace) -> dict:
     config = policy.config
     sampler = WindowSampler(demos, config.horizon, config.n_obs_steps, config.n_action_steps)
     generator = torch.Generator().manual_seed(args.seed)
-    zones = None
+    zones = routes = None
     if config.sees_zones:
         bank = ShapeBank.build(SHAPES, args.seed, fine_cell_px(config.zone_workspace,
                                                                config.zone_grid),
                                PUSHT_ROBOT.pusher_radius)
         zones = ZoneSampler(bank, config.zone_grid, config.zone_workspace, args.zone_drop,
                             generator)
+        if args.init_from is not None:
+            with torch.inference_mode():
+                routes = policy_routes(load_policy(args.init_from).to(device), sampler,
+                                       ROUTES_PER_WINDOW, args.seed, quiet=args.quiet)
     ema = EmaWeights(policy.unet)
     optimizer = torch.optim.AdamW(policy.unet.parameters(), lr=args.lr, betas=(0.95, 0.999),
                                   weight_decay=1e-6)
@@ -211,9 +220,11 @@ def train(args: argparse.Namespace) -> dict:
         while step < args.steps:
             if cursor + args.batch_size > len(order):
                 order, cursor = torch.randperm(len(sampler), generator=generator), 0
-            obs, actions = sampler.batch(order[cursor: cursor + args.batch_size])
+            ids = order[cursor: cursor + args.batch_size]
+            obs, actions = sampler.batch(ids)
             raster = None if zones is None else zones.rasters(
-                torch.cat([obs[..., -2:], actions], dim=1), obs[:, -1, -2:]).to(device)
+                torch.cat([obs[..., -2:], actions], dim=1), obs[:, -1, -2:],
+                None if routes is None else routes[ids].cpu()).to(device)
             obs, actions = obs.to(device), actions.to(device)
             cursor += args.batch_size
             for group in optimizer.param_groups:

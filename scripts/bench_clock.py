@@ -20,7 +20,7 @@ import threading
 import numpy as np
 from bench_realtime import add_condition_arguments, background_load, cpu_times
 
-from constrained_diffusion_ros.planning.clock import ControlClock
+from constrained_diffusion_ros.runtime.clock import ControlClock
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -27,14 +27,15 @@ from constrained_diffusion_ros.nodes.policy_status import ReactionTimes, StatusR
 from constrained_diffusion_ros.nodes.setpoint_output import SetpointOutput
 from constrained_diffusion_ros.nodes.zone_ingest import ZoneIngest
 from constrained_diffusion_ros.planning.chunk_loop import ChunkLoop, warm_up
-from constrained_diffusion_ros.planning.clock import ControlClock
 from constrained_diffusion_ros.planning.config import load_configurations, weakens
 from constrained_diffusion_ros.planning.liveness import StandstillCounts
-from constrained_diffusion_ros.planning.os_scheduling import request_fifo
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.planning.sound_setpoints import SoundSetpoints
 from constrained_diffusion_ros.policy.runtime import use_runtime
 from constrained_diffusion_ros.policy.weights import load_policy
+from constrained_diffusion_ros.runtime.clock import ControlClock
+from constrained_diffusion_ros.runtime.live_loop import live_chunk_loop
+from constrained_diffusion_ros.runtime.os_scheduling import request_fifo
 from constrained_diffusion_ros.zones.grid import MaskCaps
 from msg_schemas import NAMESPACE, TOPICS, qos_profile
 from msg_schemas.conversions import path_message, step_of_stamp
@@ -151,7 +152,7 @@ class PolicyNode(Node):
             self.loop.use_planner(self.planner)
             return
         values, lead = self.values, self.values["lead"]
-        self.loop = ChunkLoop.live(
+        self.loop = live_chunk_loop(
             self.planner, self.zones,
             values["torch_threads"] if values["planning_process"] else None,
             values["planning_idle"], seed, lead=None if lead < 0 else lead,

@@ -5,7 +5,5 @@ from an action queue (`action_queue`) in the evaluation, the delay study, lockst
 
 The loop asks a planning worker for chunks: the jobs, results and messages they exchange and the
 interface every worker implements are in `plan_jobs`; a simulated worker plans in the caller's
-thread with a chosen delay (`simulated_worker`), a thread (`thread_worker`) or a supervised child
-process (`planning_process`) plans in the background. Live, a control clock (`clock`) sends the
-setpoints, which `sound_setpoints` has the last word on; what asks the operating system for
-priorities and reads /proc is in `os_scheduling`."""
+thread with a chosen delay (`simulated_worker`). The workers that plan in the background, the
+control clock and the operating system's part are the live runtime's (`runtime`)."""

@@ -4,8 +4,9 @@ the delay study, lockstep mode and the live node.
 The loop is fed observations by control step (a simulated clock in the evaluation and in
 lockstep, the wall clock live) and answers each with the setpoint to execute. It asks a planning
 worker for chunks (`PlanWorker`, plan_jobs.py): `SimulatedPlanning` plans in the caller's thread
-and delivers the plan `delay` control steps later; `PlanningThread` and `PlanningProcess` plan in
-the background and deliver whenever the plan is done. Whatever the worker, the rules are these:
+and delivers the plan `delay` control steps later; live, a thread or a child process plans in
+the background and delivers whenever the plan is done (`runtime.live_loop`). Whatever the
+worker, the rules are these:
 - a row asks for its next chunk `lead` steps before the chunk in force runs out (the first at
   once), unless a plan is on its way;
 - a row whose zones changed since its plan, and whose rest of the chunk now lies where the
@@ -47,9 +48,7 @@ from constrained_diffusion_ros.planning.action_queue import (
 )
 from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult, PlanWorker
 from constrained_diffusion_ros.planning.planners import ChunkPlanner, ConstrainedPlanner
-from constrained_diffusion_ros.planning.planning_process import PlanningProcess
 from constrained_diffusion_ros.planning.simulated_worker import SimulatedPlanning
-from constrained_diffusion_ros.planning.thread_worker import PlanningThread
 from constrained_diffusion_ros.zones.area import RestrictedArea
 from constrained_diffusion_ros.zones.geometry import leaves_no_room
 from constrained_diffusion_ros.zones.live import LiveZones
@@ -185,22 +184,6 @@ class ChunkLoop:
         return cls(planner, SimulatedPlanning.factory(generator, delay), zones, handover,
                    lead=delay, noise_seed=noise_seed, every_tick=every_tick, delay=delay,
                    on_install=on_install)
-
-    @classmethod
-    def live(cls, planner: ConstrainedPlanner, zones: ZoneSource,
-             process_threads: int | None = 1, idle: bool = True, noise_seed: int = 0,
-             **options: object) -> ChunkLoop:
-        """The loop on the wall clock, as the policy node runs it live: plans made in a child
-        process with `process_threads` torch threads, at idle priority if `idle`
-        (`PlanningProcess`), or with None in a thread of this process (`PlanningThread`);
-        `options` are the loop's (lead, soft, rate_hz, wake, every_tick,
-        replan_on_zone_change, on_install)."""
-        def make_worker(planner: ChunkPlanner, on_result: Callable[[PlanResult], None]
-                        ) -> PlanWorker:
-            if process_threads is None:
-                return PlanningThread(planner, on_result, noise_seed)
-            return PlanningProcess(planner, on_result, noise_seed, process_threads, idle=idle)
-        return cls(planner, make_worker, zones, noise_seed=noise_seed, **options)
 
     # -- inputs ------------------------------------------------------------------------------
 

@@ -1,5 +1,6 @@
 """Imports run one way: msg_schemas <- sim_bridge <- constrained_diffusion_ros, and the ROS-free
-core (policy, sampling, zones, planning) imports neither the simulator nor ROS.
+core (policy, sampling, zones, planning, runtime) imports neither the simulator nor ROS; the
+method (planning and below) does not import the live runtime, nor ask the operating system.
 
 Every import is read from the source (module level and inside functions alike), so the test
 needs neither ROS nor torch to run, and a lazy import cannot hide a dependency.
@@ -13,7 +14,12 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[2]
 PACKAGES = ("msg_schemas", "sim_bridge", "constrained_diffusion_ros")
 CORE = tuple(f"constrained_diffusion_ros.{layer}"
-             for layer in ("policy", "sampling", "zones", "planning"))
+             for layer in ("policy", "sampling", "zones", "planning", "runtime"))
+RUNTIME = "constrained_diffusion_ros.runtime"
+# What asks the operating system for processes, priorities, sockets and terminals: the
+# runtime's business (runtime/os_scheduling.py and the workers), never the method's.
+OPERATING_SYSTEM = ("os", "subprocess", "socket", "fcntl", "termios", "signal", "resource",
+                    "multiprocessing")
 ROS = ("rclpy", "rcl_interfaces", "builtin_interfaces", "geometry_msgs", "nav_msgs", "std_msgs",
        "std_srvs", "visualization_msgs", "diagnostic_msgs", "ament_index_python")
 # What each package may import of the others (the direction of the layers).
@@ -66,6 +72,14 @@ def violations(graph: dict[str, set[str]]) -> list[str]:
             if module.startswith(CORE) and target.startswith("constrained_diffusion_ros.") \
                     and not target.startswith(CORE):
                 found.append(f"{module} imports {target}: the core imports only the core")
+            if module.startswith(CORE) and not module.startswith(RUNTIME) \
+                    and target.startswith(RUNTIME):
+                found.append(f"{module} imports {target}: the method does not import the "
+                             f"live runtime")
+            if module.startswith("constrained_diffusion_ros.planning") \
+                    and top in OPERATING_SYSTEM:
+                found.append(f"{module} imports {target}: the operating system is the "
+                             f"runtime's")
     found += [f"import circle: {' -> '.join(cycle)}" for cycle in cycles(graph)]
     return found
 
@@ -113,7 +127,11 @@ def test_the_check_catches_circles_and_imports_against_the_layers(tmp_path: Path
         "constrained_diffusion_ros/zones/b.py": "from constrained_diffusion_ros.zones import a\n",
         "constrained_diffusion_ros/planning/__init__.py": "",
         "constrained_diffusion_ros/planning/p.py": "from sim_bridge.scene import WALLS\n"
-                                                   "from constrained_diffusion_ros import pusht\n",
+                                                   "from constrained_diffusion_ros import pusht\n"
+                                                   "import os\n"
+                                                   "from ..runtime import clock\n",
+        "constrained_diffusion_ros/runtime/__init__.py": "",
+        "constrained_diffusion_ros/runtime/clock.py": "import os\n",
     }
     for name, text in sources.items():
         (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
@@ -124,6 +142,9 @@ def test_the_check_catches_circles_and_imports_against_the_layers(tmp_path: Path
     assert "constrained_diffusion_ros.zones.a imports rclpy" in found
     assert "constrained_diffusion_ros.planning.p imports sim_bridge.scene" in found
     assert "constrained_diffusion_ros.planning.p imports constrained_diffusion_ros.pusht" in found
+    assert "planning.p imports os: the operating system is the runtime's" in found
+    assert "planning.p imports constrained_diffusion_ros.runtime.clock: the method" in found
+    assert "runtime.clock imports os" not in found
     assert "import circle: constrained_diffusion_ros.zones.a -> constrained_diffusion_ros.zones.b" \
         " -> constrained_diffusion_ros.zones.a" in found
     assert "import circle: constrained_diffusion_ros.pusht -> sim_bridge.scene -> " \
@@ -159,7 +180,8 @@ def test_one_chunk_loop_drives_the_evaluation_lockstep_and_the_live_node() -> No
     """The evaluation's rollout and the policy node (both modes) run `ChunkLoop`; no other
     module keeps an action queue of its own, so there is one replan rule."""
     package = REPO / "constrained_diffusion_ros"
-    for driver in ("evaluation/rollout.py", "nodes/policy_node_impl.py"):
+    for driver in ("evaluation/rollout.py", "nodes/policy_node_impl.py",
+                   "runtime/live_loop.py"):
         assert "ChunkLoop" in {node.id for node in ast.walk(ast.parse(
             (package / driver).read_text())) if isinstance(node, ast.Name)}, driver
     queue_owners = {path.relative_to(package).as_posix() for path in package.rglob("*.py")

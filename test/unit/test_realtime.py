@@ -27,23 +27,24 @@ from test_lockstep import CONFIG, Scripted, lockstep
 
 from constrained_diffusion_ros.planning.action_queue import ActionQueue, committed_prefix
 from constrained_diffusion_ros.planning.chunk_loop import ChunkLoop, warm_up
-from constrained_diffusion_ros.planning.clock import ControlClock
 from constrained_diffusion_ros.planning.config import ConstraintConfig
-from constrained_diffusion_ros.planning.os_scheduling import (
+from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult, plan_chunk
+from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
+from constrained_diffusion_ros.planning.simulated_worker import SimulatedPlanning
+from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
+from constrained_diffusion_ros.policy.weights import save_policy
+from constrained_diffusion_ros.pusht import PUSHT_ROBOT
+from constrained_diffusion_ros.runtime.clock import ControlClock
+from constrained_diffusion_ros.runtime.live_loop import live_chunk_loop
+from constrained_diffusion_ros.runtime.os_scheduling import (
     STARVED_SHARE,
     CpuShare,
     may_leave_idle,
     request_fifo,
     scheduling,
 )
-from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult, plan_chunk
-from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
-from constrained_diffusion_ros.planning.planning_process import PlanningProcess, _send, serve
-from constrained_diffusion_ros.planning.simulated_worker import SimulatedPlanning
-from constrained_diffusion_ros.planning.thread_worker import PlanningThread
-from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
-from constrained_diffusion_ros.policy.weights import save_policy
-from constrained_diffusion_ros.pusht import PUSHT_ROBOT
+from constrained_diffusion_ros.runtime.planning_process import PlanningProcess, _send, serve
+from constrained_diffusion_ros.runtime.thread_worker import PlanningThread
 from constrained_diffusion_ros.sampling.sampler import Interrupted
 from constrained_diffusion_ros.zones import LiveZones, rectangle
 from constrained_diffusion_ros.zones.plugins import PLUGIN_MODULES_ENV, ZoneCheckError, load_area
@@ -377,7 +378,7 @@ def test_the_measured_lead_leaves_room_for_a_plan_stopped_and_made_again(
         tiny_policy: DiffusionPolicy) -> None:
     """Asked `lead` steps before the chunk runs out, a plan that a zone stops at its end and
     that is made again takes two planning times: lead covers them and a step."""
-    controller = ChunkLoop.live(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT), LiveZones(),
+    controller = live_chunk_loop(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT), LiveZones(),
                                 None, rate_hz=10.0)
     try:
         for seconds, lead in ((0.03, 2), (0.21, 6), (0.5, 8)):
@@ -575,7 +576,7 @@ def test_the_planning_process_exits_when_the_node_is_killed(make_tiny_policy, tm
         "import sys, time\n"
         "from constrained_diffusion_ros.planning.planners import ConstrainedPlanner\n"
         "from constrained_diffusion_ros.planning.config import ConstraintConfig\n"
-        "from constrained_diffusion_ros.planning.planning_process import PlanningProcess\n"
+        "from constrained_diffusion_ros.runtime.planning_process import PlanningProcess\n"
         "from constrained_diffusion_ros.policy.weights import load_policy\n"
         "from constrained_diffusion_ros.pusht import PUSHT_ROBOT\n"
         f"policy = load_policy({str(model)!r})\n"
@@ -605,7 +606,7 @@ def test_a_planning_child_whose_node_is_killed_mid_plan_exits_without_a_tracebac
             "from constrained_diffusion_ros.planning.planners import ConstrainedPlanner\n"
             "from constrained_diffusion_ros.planning.config import ConstraintConfig\n"
             "from constrained_diffusion_ros.planning.plan_jobs import PlanJob\n"
-            "from constrained_diffusion_ros.planning.planning_process import PlanningProcess\n"
+            "from constrained_diffusion_ros.runtime.planning_process import PlanningProcess\n"
             "from constrained_diffusion_ros.policy.weights import load_policy\n"
             "from constrained_diffusion_ros.pusht import PUSHT_ROBOT\n"
             f"policy = load_policy({str(model)!r})\n"
@@ -829,7 +830,7 @@ def live(planner: ConstrainedPlanner, zones: LiveZones, lead: int | None = None,
          process_threads: int | None = None, **options: object) -> ChunkLoop:
     """The loop as the node runs it live: plans from a thread (or a process), warmed up."""
     warm_up(planner)
-    return ChunkLoop.live(planner, zones, process_threads, lead=lead, **options)
+    return live_chunk_loop(planner, zones, process_threads, lead=lead, **options)
 
 
 def installed(controller: ChunkLoop) -> None:

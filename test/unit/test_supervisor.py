@@ -17,26 +17,26 @@ import numpy as np
 import pytest
 import torch
 
-from constrained_diffusion_ros.planning import planning_process as workers
 from constrained_diffusion_ros.planning.chunk_loop import ChunkLoop
 from constrained_diffusion_ros.planning.config import ConstraintConfig
-from constrained_diffusion_ros.planning.os_scheduling import (
+from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult
+from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
+from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
+from constrained_diffusion_ros.pusht import PUSHT_ROBOT
+from constrained_diffusion_ros.runtime import planning_process as workers
+from constrained_diffusion_ros.runtime.os_scheduling import (
     CpuShare,
     may_leave_idle,
     process_sample,
     scheduling,
 )
-from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult
-from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
-from constrained_diffusion_ros.planning.planning_process import (
+from constrained_diffusion_ros.runtime.planning_process import (
     RESTART_DELAY_MAX_S,
     RESTART_DELAY_S,
     RESTART_LIMIT,
     PlanningProcess,
 )
-from constrained_diffusion_ros.planning.thread_worker import PlanningThread
-from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
-from constrained_diffusion_ros.pusht import PUSHT_ROBOT
+from constrained_diffusion_ros.runtime.thread_worker import PlanningThread
 from constrained_diffusion_ros.zones import LiveZones
 
 FAST = ConstraintConfig("fast", sampler="ddim", denoising_steps=3)

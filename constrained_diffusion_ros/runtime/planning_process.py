@@ -31,12 +31,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from constrained_diffusion_ros.planning.os_scheduling import (
-    CpuShare,
-    may_leave_idle,
-    process_sample,
-    scheduling,
-)
 from constrained_diffusion_ros.planning.plan_jobs import (
     PlanJob,
     PlanResult,
@@ -45,6 +39,12 @@ from constrained_diffusion_ros.planning.plan_jobs import (
     plan_chunk,
 )
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
+from constrained_diffusion_ros.runtime.os_scheduling import (
+    CpuShare,
+    may_leave_idle,
+    process_sample,
+    scheduling,
+)
 from constrained_diffusion_ros.sampling.sampler import Interrupted
 from constrained_diffusion_ros.zones.area import RestrictedArea
 from constrained_diffusion_ros.zones.plugins import ZoneCheckError

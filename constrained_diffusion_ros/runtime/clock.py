@@ -13,7 +13,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from constrained_diffusion_ros.planning.os_scheduling import CLOCK_PRIORITY, request_fifo
+from constrained_diffusion_ros.runtime.os_scheduling import CLOCK_PRIORITY, request_fifo
 
 LATENESS_WINDOW = 100  # ticks over which the clock's lateness is kept (the diagnostics')
 

@@ -16,12 +16,16 @@ figure twice. Asserts nothing.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+from pathlib import Path
 
 import torch
 
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
+from constrained_diffusion_ros.policy.config import PolicyConfig
+from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.sampling.sampler import DenoisingSampler
@@ -35,9 +39,24 @@ SCENARIOS = ("left_0.1", "left_0.5", "center_0.1", "center_0.2", "posts", "u_bel
              "e_comb")
 
 
+def checkpoint_policy(directory: Path) -> DiffusionPolicy:
+    """A checkpoint's EMA weights as a policy (what training would save at that step)."""
+    from safetensors.torch import load_file
+
+    meta = json.loads((directory / "state.json").read_text())
+    policy = DiffusionPolicy(PolicyConfig.from_dict(meta["policy"]))
+    tensors = load_file(str(directory / "state.safetensors"))
+    policy.unet.load_state_dict({k[4:]: v for k, v in tensors.items() if k.startswith("ema.")})
+    print(f"checkpoint {directory} at step {meta['step']}")
+    return policy.eval().requires_grad_(False)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--model", default=str(default_model_dir()))
+    parser.add_argument("--checkpoint", default=None, metavar="DIR",
+                        help="a training checkpoint (train_policy's OUTPUT/checkpoint) instead "
+                             "of --model: its EMA weights, as training goes")
     parser.add_argument("--dataset", default="../shared/datasets/pusht_cchi_v7_replay.zarr")
     parser.add_argument("--states", type=int, default=1000, help="demonstration states drawn")
     parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS))
@@ -45,7 +64,8 @@ def main() -> int:
     parser.add_argument("--guidance", type=float, default=1.0,
                         help="zone_guidance of the plans that see the zones")
     args = parser.parse_args()
-    policy = load_policy(args.model)
+    policy = load_policy(args.model) if args.checkpoint is None else checkpoint_policy(
+        Path(args.checkpoint))
     config = policy.config
     windows = WindowSampler(load_demonstrations(args.dataset), config.horizon,
                             config.n_obs_steps, config.n_action_steps)
@@ -56,8 +76,8 @@ def main() -> int:
     sampler = DenoisingSampler(policy, "ddim", 10, "trailing", zone_guidance=args.guidance)
     executed = slice(config.first_executed, config.first_executed + config.n_action_steps)
     radius = PUSHT_ROBOT.pusher_radius
-    print(f"{args.model}: sees zones {config.sees_zones}; {args.states} demonstration states, "
-          f"DDIM 10, seed {args.seed}, zone guidance {args.guidance}")
+    print(f"{args.checkpoint or args.model}: sees zones {config.sees_zones}; {args.states} "
+          f"demonstration states, DDIM 10, seed {args.seed}, zone guidance {args.guidance}")
     print(f"{'scenario':<16}{'states':>8}{'blind enter':>13}{'seeing enter':>14}"
           f"{'kept out':>10}")
     for name in args.scenarios:

@@ -210,14 +210,15 @@ class ConstrainedPlanner:
         own plan least disagrees with the zones (ties: the first)."""
         k, batch = self.config.candidates, len(observations)
         rows = torch.arange(batch).repeat_interleave(k)
-        area = self.planning_area(zones.select_rows(rows))
+        zones = zones.select_rows(rows)
+        area = self.planning_area(zones)
         hooks = self.hooks(area, self.robot.pusher(observations[rows, -1]))
         steering = [h for h in hooks if not isinstance(h, FinalProjection | PathRepair)]
         last = LastUpdate()
         first = [] if prefix is None else [prefix.repeated(k)]
         chunks = self.sampler.sample(observations[rows], generator,
                                      first + steering + [last] + hooks[len(steering):],
-                                     zones.select_rows(rows))
+                                     zones)
         start = self.policy.config.first_executed
         executed = slice(start, start + self.policy.config.n_action_steps)
         moved = (chunks - last.sample)[:, executed].norm(dim=-1).sum(dim=-1)

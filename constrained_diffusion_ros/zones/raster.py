@@ -10,6 +10,7 @@ themselves, not grown by the pusher: the network learns how far its disc must ke
 
 from __future__ import annotations
 
+import contextlib
 import weakref
 
 import torch
@@ -46,14 +47,19 @@ def coverage_raster(fine: Tensor, grid: int) -> Tensor:
 def zone_raster(zones: RestrictedArea, batch: int, grid: int, workspace: Bounds) -> Tensor:
     """(batch, grid, grid) float32: the share of each cell `zones` cover, per row of a batch
     (a batch-aware area answers row by row). Kept with the area (areas are immutable): a
-    planner asks again for every plan while the zones stay the same."""
+    planner asks again for every plan while the zones stay the same; a plug-in area that
+    cannot be a weak key (unhashable, or slots without a weak reference) is rasterised anew."""
     key = (batch, grid, workspace)
-    kept = _kept.get(zones)
+    try:
+        kept = _kept.get(zones)
+    except TypeError:
+        kept = None
     if kept is not None and kept[0] == key:
         return kept[1]
     points = sample_points(workspace, grid).reshape(1, -1, 2).expand(batch, -1, -1)
     inside = zones.signed_distance(points) < 0
     fine = grid * SAMPLES_PER_SIDE
     raster = coverage_raster(inside.reshape(batch, fine, fine), grid)
-    _kept[zones] = (key, raster)
+    with contextlib.suppress(TypeError):
+        _kept[zones] = (key, raster)
     return raster

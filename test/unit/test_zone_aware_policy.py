@@ -49,6 +49,13 @@ def test_the_raster_is_the_share_of_each_cell_the_zones_cover() -> None:
     assert float(per_row[0].sum()) == 0.0 and float(per_row[1].sum()) == 4.0
     assert zone_raster(both, 3, 32, WORKSPACE) is per_row  # kept with the area
 
+    class Unhashable(ZoneSet):  # a plug-in area that defines equality: no weak key
+        __eq__ = object.__eq__
+        __hash__ = None
+
+    plug_in = Unhashable([shapely.box(64.0, 96.0, 96.0, 128.0)])
+    assert torch.equal(zone_raster(plug_in, 2, 32, WORKSPACE), raster)
+
 
 @pytest.fixture(scope="module")
 def bank() -> ShapeBank:

@@ -26,10 +26,12 @@ def test_a_republished_zone_is_measured_one_too_fast_is_said_and_a_cornered_push
                         zone_speed_bound=300.0)
     link.planning()
     start = ros.node.get_clock().now().nanoseconds
-    for k in range(8):  # 100 px/s toward the pusher, then 1000 px/s across the far corner
+    for k in range(8):  # 100 px/s toward the pusher; 600 px/s along the top wall, inside the
+        # workspace throughout (a square pushed out of it was refused at its last updates, and
+        # one CI run under load then missed the status this waits for)
         t_ns = start + k * 100_000_000
         publish_square(link, 21, PUSHER[0] + 100.0 - 10.0 * k, PUSHER[1] - 15.0, t_ns)
-        publish_square(link, 22, 100.0 * k, 0.0, t_ns)
+        publish_square(link, 22, 60.0 * k, 0.0, t_ns)
         ros.spin_until(lambda: False, 0.1)
     # The last square's near side is 100 - 70 = 30 px from the pusher's centre: a 15 px gap
     # (a status may come before the last updates are in: wait for one after them).

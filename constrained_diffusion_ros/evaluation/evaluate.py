@@ -1,9 +1,12 @@
 """Reproduce the paper's Table I and our extensions in one command: `evaluate --help`.
 
-Configurations that share a sampler run all their scenarios x seeds as one batch of episodes
-(25 seeded scenes from seed 100000, 200 action steps each); a configuration that ignores the
-zones runs its seeds once and is scored against every scenario. Writes table.md,
-results.csv/json, s_vs_r.png and frames.png to the output directory and prints the table.
+Configurations that share a sampler run their scenarios x seeds in units: blocks of --unit
+consecutive seeds, each one batch of episodes with its own noise seed (25 seeded scenes from seed
+100000, 200 action steps each: one unit per sampler group); a configuration that ignores the
+zones runs its seeds once and is scored against every scenario. The units run here one after
+the other, or with --ray as Ray tasks, with the same episodes either way. Writes table.md,
+results.csv/json, s_vs_r.png and frames.png to the output directory and prints the table;
+Ctrl-C writes the cells whose units all finished and exits 130.
 """
 
 from __future__ import annotations
@@ -12,6 +15,9 @@ import argparse
 import json
 import sys
 import time
+from collections import Counter
+from collections.abc import Iterator, Sequence
+from contextlib import closing, nullcontext
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -22,10 +28,14 @@ from constrained_diffusion_ros.cli import (
     positive_int,
     run_command,
 )
+from constrained_diffusion_ros.evaluation import distributed
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 
 if TYPE_CHECKING:  # torch and shapely come with it: imported once the arguments are read
-    from constrained_diffusion_ros.evaluation.runner import CellResult
+    from constrained_diffusion_ros.evaluation.runner import CellResult, Unit, UnitRun
+    from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
+
+INTERRUPTED = 130  # a shell's code for a command stopped by Ctrl-C
 
 DEFAULT_FIGURE = ("center_0.2", "r_g10_p_safe")
 
@@ -52,6 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="keep the cells already in OUTPUT/results.json and run only the "
                              "missing ones (after adding a configuration or a scenario, say)")
     add_compute_arguments(parser)
+    distributed.add_ray_arguments(parser)
     parser.add_argument("--config-dir", default=str(config_dir()),
                         help="directory with scenarios.yaml, configurations.yaml and "
                              "evaluation.yaml (the report's labels)")
@@ -98,18 +109,35 @@ def figure_cell(args: argparse.Namespace, evaluated: set[tuple[str, str]]) -> tu
     return tuple(args.figure)
 
 
+def local_runs(policy: DiffusionPolicy, groups: Sequence[tuple[list, list]],
+               units: Sequence[Unit], n_steps: int) -> Iterator[tuple[Unit, UnitRun]]:
+    """The units run here, one after the other, with a progress bar over each one's steps."""
+    from constrained_diffusion_ros.evaluation.runner import run_unit
+
+    for unit in units:
+        configs, scenario_lists = groups[unit.group]
+        yield unit, run_unit(policy, configs, scenario_lists, unit.seeds, n_steps,
+                             progress=True)
+
+
 def run(args: argparse.Namespace) -> int:
     import torch
     from tqdm import tqdm
 
     from constrained_diffusion_ros.evaluation import report
     from constrained_diffusion_ros.evaluation.configurations import load_evaluated
-    from constrained_diffusion_ros.evaluation.runner import evaluate_configurations
+    from constrained_diffusion_ros.evaluation.runner import (
+        Unit,
+        assemble,
+        episodes_per_seed,
+        seed_blocks,
+    )
     from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 
     directory = Path(args.config_dir)
     if not directory.is_dir():
         raise ValueError(f"--config-dir {directory}: no such directory")
+    address = distributed.cluster_address(args) if args.ray else None
     scenarios = select(load_scenarios(directory / "scenarios.yaml"), args.scenarios, "scenarios")
     configs = select(load_evaluated(directory), args.configs, "configurations")
     chosen_of = {c.name: [s for s in scenarios if s.paper or c.scenarios == "all"]
@@ -120,7 +148,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"{config.name} runs on the paper's scenarios only (config/evaluation.yaml): "
                   f"not on {', '.join(skipped)}", file=sys.stderr)
     drawn = figure_cell(args, {(s.name, c) for c, chosen in chosen_of.items() for s in chosen})
-    policy = load_policy_for(args)
+    policy = load_policy_for(args)  # here too with --ray: a bad model is said before a cluster
     seeds = list(range(args.first_seed, args.first_seed + args.episodes))
     output = Path(args.output)
     try:
@@ -141,20 +169,56 @@ def run(args: argparse.Namespace) -> int:
         missing = [s for s in chosen if (s.name, config.name) not in previous]
         if missing:
             pending.setdefault(config.config.sampler_key, []).append((config, missing))
-    for group in tqdm(pending.values(), desc="batches", unit="batch"):
-        t0 = time.monotonic()
-        results, log, first_rows = evaluate_configurations(
-            policy, [c.config for c, _ in group], [chosen for _, chosen in group], seeds,
-            args.steps)
-        cells += results
-        tqdm.write(f"{', '.join(c.name for c, _ in group)}: {len(results)} cells x "
-                   f"{len(seeds)} episodes, batch of {len(log.seeds)}, in "
-                   f"{time.monotonic() - t0:.0f} s")
-        if drawn in first_rows:
-            scenario = next(s for s in scenarios if s.name == drawn[0])
-            config = next(c for c, _ in group if c.name == drawn[1])
-            figure = (log, first_rows[drawn], scenario, config)
+    named = list(pending.values())  # the sampler groups, with the configurations' names
+    groups = [([c.config for c, _ in group], [chosen for _, chosen in group]) for group in named]
+    units = [Unit(index, block) for index in range(len(groups))
+             for block in seed_blocks(seeds, args.unit)]
+    per_seed = [episodes_per_seed(*group) for group in groups]
+    if args.ray:
+        study = distributed.Study(distributed.model_files(args.model), args.device,
+                                  args.runtime, args.ray_threads, groups, args.steps)
+        session = distributed.ray_session(address, args.ray_workers)
+        where = f"as {len(units)} Ray tasks of {args.ray_threads} thread(s)"
+    else:
+        session = nullcontext()
+        where = f"on {torch.get_num_threads()} threads"
+    runs: dict[tuple[int, int], UnitRun] = {}  # by unit: a unit run twice is kept once
+    left = Counter(unit.group for unit in units)
+    interrupted = False
+    with session, tqdm(total=sum(len(u.seeds) * per_seed[u.group] for u in units),
+                       desc="episodes", unit="episode", disable=not units) as bar:
+        stream = (distributed.unit_runs(study, units) if args.ray
+                  else local_runs(policy, groups, units, args.steps))
+        try:
+            with closing(stream):
+                for unit, result in stream:
+                    if unit.key in runs:
+                        continue
+                    runs[unit.key] = result
+                    bar.update(len(unit.seeds) * per_seed[unit.group])
+                    left[unit.group] -= 1
+                    if left[unit.group]:
+                        continue
+                    group = named[unit.group]
+                    own = [runs[u.key] for u in units if u.group == unit.group]
+                    results, log, first_rows = assemble(*groups[unit.group], own)
+                    cells += results
+                    tqdm.write(f"{', '.join(c.name for c, _ in group)}: {len(results)} cells x "
+                               f"{len(seeds)} episodes, {len(own)} unit(s) of up to "
+                               f"{results[0].batch} episodes, "
+                               f"{sum(r.wall_s for r in own):.0f} s of compute")
+                    if drawn in first_rows:
+                        scenario = next(s for s in scenarios if s.name == drawn[0])
+                        config = next(c for c, _ in group if c.name == drawn[1])
+                        figure = (log, first_rows[drawn], scenario, config)
+        except KeyboardInterrupt:
+            interrupted = True
     wall = time.monotonic() - started
+    if interrupted:
+        print(f"evaluate: interrupted; {len(cells)} finished cells "
+              + (f"written to {output}" if cells else "(nothing written)"), file=sys.stderr)
+        if not cells:
+            return INTERRUPTED
     order = {(s.name, c.name): (i, j) for i, c in enumerate(configs)
              for j, s in enumerate(scenarios)}
     cells.sort(key=lambda cell: order[(cell.scenario, cell.configuration)])
@@ -168,16 +232,17 @@ def run(args: argparse.Namespace) -> int:
         report.plot_frames(log, episode, scenario, output / "frames.png",
                            f"{config.label} on {scenario.label}, seed {seeds[0]}")
     summary = (f"{len(cells)} cells ({paper_cells} of the paper's), {len(seeds)} episodes "
-               f"each, {args.steps} steps; this run: {wall:.0f} s on "
-               f"{torch.get_num_threads()} threads for {len(cells) - reused} cells"
-               + (f" ({reused} reused from results.json)" if reused else ""))
+               f"each, {args.steps} steps, units of {args.unit} seeds; this run: {wall:.0f} s "
+               f"{where} for {len(cells) - reused} cells"
+               + (f" ({reused} reused from results.json)" if reused else "")
+               + (" (interrupted: the cells whose units all finished)" if interrupted else ""))
     (output / "table.md").write_text(
         f"# Evaluation\n\n{summary}\n\n{report.batch_times(cells)}\n\n"
         f"Cells: `s / r` (ours), then the paper's Table I value.\n\n"
         f"{table}\n\n## Every metric\n\n{report.details_table(cells)}\n")
     print(table)
     print(summary)
-    return 0
+    return INTERRUPTED if interrupted else 0
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,6 +1,7 @@
-"""Runs constraint configurations over scenarios, every episode of a configuration in one
-batch, and measures what the paper measures (s, r) plus what it does not (body overlap,
-path crossings, planning time)."""
+"""Runs constraint configurations over scenarios, in units of fixed composition (a sampler
+group's configurations on their scenarios for a block of seeds, one batch each) that run here
+or as Ray tasks (distributed.py) with the same episodes, and measures what the paper measures
+(s, r) plus what it does not (body overlap, path crossings, planning time)."""
 
 from __future__ import annotations
 
@@ -31,6 +32,9 @@ from constrained_diffusion_ros.zones.motion import (
 )
 
 DEFAULT_SEEDS = tuple(range(100000, 100025))
+# Seeds per unit of work (`Unit`): the default study is one unit per sampler group, as it was
+# one batch before units; more seeds make more units, each its own batch and noise.
+DEFAULT_UNIT_SIZE = 25
 # Where a contact is checked for being unavoidable: the pusher's one-step reach sampled on
 # rings at these fractions of it, in CONTACT_DIRECTIONS directions, and its centre.
 CONTACT_RINGS = (0.25, 0.5, 0.75, 1.0)
@@ -285,33 +289,110 @@ def _layout(configs: Sequence[ConstraintConfig], scenario_lists: Sequence[Sequen
     return blocks
 
 
-def evaluate_configurations(policy: DiffusionPolicy, configs: Sequence[ConstraintConfig],
-                            scenario_lists: Sequence[Sequence[Scenario]],
-                            seeds: Sequence[int] = DEFAULT_SEEDS, n_steps: int = 200,
-                            noise_seed: int = 0, progress: bool = True, delay: int = 0,
-                            handover: str = "sync"
-                            ) -> tuple[list[CellResult], RolloutLog, dict[tuple[str, str], int]]:
-    """Configurations that share a sampler (one `sampler_key`), each on its scenarios x seeds,
-    all as one batch of episodes. Returns the cells, the log and, per (scenario, configuration),
-    the log row of its first episode."""
+@dataclass(frozen=True)
+class Unit:
+    """A fixed piece of a study: the configurations of one sampler group, each on its
+    scenarios, for a block of consecutive seeds, run as one batch with its own noise. Units
+    depend on the seeds and the unit size only, never on how many workers run them, so any
+    worker count runs the same batches and gives the same episodes."""
+
+    group: int  # index of the sampler group in the study
+    seeds: tuple[int, ...]
+
+    @property
+    def key(self) -> tuple[int, int]:
+        """What the results are assembled by: a retried unit replaces, never adds."""
+        return self.group, self.seeds[0]
+
+
+@dataclass
+class UnitRun:
+    """What a unit brings back: its batch's log and the wall time it took."""
+
+    log: RolloutLog
+    wall_s: float
+
+
+def seed_blocks(seeds: Sequence[int], unit_size: int) -> list[tuple[int, ...]]:
+    """`seeds` in consecutive blocks of `unit_size` (the last may be shorter)."""
+    if unit_size < 1:
+        raise ValueError(f"a unit holds at least one seed, not {unit_size}")
+    return [tuple(seeds[i:i + unit_size]) for i in range(0, len(seeds), unit_size)]
+
+
+def unit_noise_seed(noise_seed: int, first_seed: int) -> int:
+    """The noise seed of the unit whose seeds start at `first_seed`: derived from its own
+    episodes, not from its place in a run, and equal to `noise_seed` for the unit that starts
+    at the first default seed, so a default study draws the noise it drew as one batch."""
+    return noise_seed + first_seed - DEFAULT_SEEDS[0]
+
+
+def run_unit(policy: DiffusionPolicy, configs: Sequence[ConstraintConfig],
+             scenario_lists: Sequence[Sequence[Scenario]], seeds: Sequence[int],
+             n_steps: int = 200, noise_seed: int = 0, progress: bool = False, delay: int = 0,
+             handover: str = "sync") -> UnitRun:
+    """One unit: configurations that share a sampler (one `sampler_key`), each on its
+    scenarios x `seeds`, as one batch of episodes laid out as `_layout` says, with a noise
+    generator seeded by `unit_noise_seed`."""
     scenarios = list(dict.fromkeys(s for chosen in scenario_lists for s in chosen))
     blocks = _layout(configs, scenario_lists, scenarios, len(seeds))
     owner = np.concatenate([np.full(b.stop - b.start, b.config) for b in blocks])
     scenario_of_row = np.concatenate([np.full(b.stop - b.start, b.scenarios[0]) for b in blocks])
     planner = MixedPlanner(policy, configs, PUSHT_ROBOT, owner)
     zones = ScenarioZones(scenarios, scenario_of_row)
-    generator = torch.Generator().manual_seed(noise_seed)
-
+    generator = torch.Generator().manual_seed(unit_noise_seed(noise_seed, seeds[0]))
     started = time.monotonic()
-    episode_seeds = [seed for _ in blocks for seed in seeds]
-    log = rollout(planner, episode_seeds, n_steps, zones, generator, progress=progress,
-                  description=", ".join(c.name for c in configs), delay=delay,
-                  handover=handover)
+    log = rollout(planner, [seed for _ in blocks for seed in seeds], n_steps, zones, generator,
+                  progress=progress, description=", ".join(c.name for c in configs),
+                  delay=delay, handover=handover)
+    return UnitRun(log, time.monotonic() - started)
+
+
+def merge_logs(logs: Sequence[RolloutLog], n_blocks: int) -> RolloutLog:
+    """The logs of a group's units, in seed order, as one log laid out as a single batch of
+    all the seeds would be: block by block, each block's seeds in order. Planning times and
+    counts add up."""
+    if len(logs) == 1:
+        return logs[0]
+
+    def rows(log: RolloutLog, block: int) -> slice:
+        size = len(log.seeds) // n_blocks
+        return slice(block * size, (block + 1) * size)
+
+    def joined(field: str) -> np.ndarray | None:
+        arrays = [getattr(log, field) for log in logs]
+        if any(array is None for array in arrays):
+            return None
+        return np.concatenate([array[rows(log, block)] for block in range(n_blocks)
+                               for log, array in zip(logs, arrays, strict=True)])
+
+    return RolloutLog(
+        [seed for block in range(n_blocks) for log in logs for seed in log.seeds[rows(log, block)]],
+        commanded=joined("commanded"), states=joined("states"), coverage=joined("coverage"),
+        executed_chunk=joined("executed_chunk"), wanted=joined("wanted"),
+        planning_s=sum(log.planning_s for log in logs),
+        planned_chunks=sum(log.planned_chunks for log in logs),
+        planner_calls=sum(log.planner_calls for log in logs),
+        zone_offsets=joined("zone_offsets"))
+
+
+def assemble(configs: Sequence[ConstraintConfig], scenario_lists: Sequence[Sequence[Scenario]],
+             runs: Sequence[UnitRun]
+             ) -> tuple[list[CellResult], RolloutLog, dict[tuple[str, str], int]]:
+    """The cells of a sampler group from its units' runs (in seed order), measured on their
+    merged log exactly as on one batch. The timing fields: planning time per episode-chunk and
+    per call over all the units, the largest unit's batch, and the units' wall times added
+    (the compute the group cost, wherever it ran)."""
+    scenarios = list(dict.fromkeys(s for chosen in scenario_lists for s in chosen))
+    n_blocks = episodes_per_seed(configs, scenario_lists)
+    n_seeds = sum(len(run.log.seeds) for run in runs) // n_blocks
+    blocks = _layout(configs, scenario_lists, scenarios, n_seeds)
+    log = merge_logs([run.log for run in runs], len(blocks))
     timing = {
         "ms_per_chunk": 1000 * log.planning_s / max(1, log.planned_chunks),
         "ms_per_call": 1000 * log.planning_s / max(1, log.planner_calls),
-        "batch": len(episode_seeds),
-        "batch_wall_s": time.monotonic() - started,
+        "batch": max(len(run.log.seeds) for run in runs),
+        "batch_wall_s": sum(run.wall_s for run in runs),
     }
     cells, first_rows = [], {}
     for block in blocks:
@@ -320,9 +401,31 @@ def evaluate_configurations(policy: DiffusionPolicy, configs: Sequence[Constrain
             scenario = scenarios[index]
             metrics = cell_metrics(log, block.rows, scenario)
             cells.append(CellResult(scenario=scenario.name, configuration=config.name,
-                                    episodes=len(seeds), **metrics, **timing))
+                                    episodes=n_seeds, **metrics, **timing))
             first_rows[(scenario.name, config.name)] = block.start
     return cells, log, first_rows
+
+
+def episodes_per_seed(configs: Sequence[ConstraintConfig],
+                      scenario_lists: Sequence[Sequence[Scenario]]) -> int:
+    """Episodes a sampler group runs per seed: one per block of its batch (a configuration
+    that ignores the zones runs a seed once for all its scenarios)."""
+    scenarios = list(dict.fromkeys(s for chosen in scenario_lists for s in chosen))
+    return len(_layout(configs, scenario_lists, scenarios, 1))
+
+
+def evaluate_configurations(policy: DiffusionPolicy, configs: Sequence[ConstraintConfig],
+                            scenario_lists: Sequence[Sequence[Scenario]],
+                            seeds: Sequence[int] = DEFAULT_SEEDS, n_steps: int = 200,
+                            noise_seed: int = 0, progress: bool = True, delay: int = 0,
+                            handover: str = "sync", unit_size: int = DEFAULT_UNIT_SIZE
+                            ) -> tuple[list[CellResult], RolloutLog, dict[tuple[str, str], int]]:
+    """Configurations that share a sampler (one `sampler_key`), each on its scenarios x seeds,
+    run here unit after unit (`unit_size` seeds each, `Unit`). Returns the cells, the merged
+    log and, per (scenario, configuration), the log row of its first episode."""
+    runs = [run_unit(policy, configs, scenario_lists, block, n_steps, noise_seed, progress,
+                     delay, handover) for block in seed_blocks(seeds, unit_size)]
+    return assemble(configs, scenario_lists, runs)
 
 
 def evaluate_configuration(policy: DiffusionPolicy, config: ConstraintConfig,

@@ -14,8 +14,9 @@ import argparse
 import os
 import socket
 import tempfile
+from collections import Counter
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import closing, contextmanager, nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -40,19 +41,27 @@ DEFAULT_UNIT_SIZE = 25
 
 
 @dataclass(frozen=True)
+class Group:
+    """Configurations that share a sampler, each on its scenarios, with one inference delay
+    and handover (`ChunkLoop`): what each unit runs a block of seeds of."""
+
+    configs: list[ConstraintConfig]
+    scenario_lists: list[list[Scenario]]
+    delay: int = 0
+    handover: str = "sync"
+
+
+@dataclass(frozen=True)
 class Study:
     """What every unit of a study shares, put in the object store once: the policy's files,
-    how to run it, and each sampler group's configurations and their scenarios."""
+    how to run it, and the groups."""
 
     model_files: dict[str, bytes]  # file name -> contents: what load_policy reads
     device: str
     runtime: str
     threads: int  # torch threads per task
-    groups: list[tuple[list[ConstraintConfig], list[list[Scenario]]]]
+    groups: list[Group]
     n_steps: int
-    noise_seed: int = 0
-    delay: int = 0
-    handover: str = "sync"
 
 
 def model_files(directory: str | Path) -> dict[str, bytes]:
@@ -85,8 +94,6 @@ def run_unit_task(boxed_study: list[Any], unit: Unit) -> UnitRun:
     import ray
     import torch
 
-    from constrained_diffusion_ros.evaluation.runner import run_unit
-
     (reference,) = boxed_study
     if reference.hex() not in _worker_study:
         study = ray.get(reference)
@@ -94,10 +101,16 @@ def run_unit_task(boxed_study: list[Any], unit: Unit) -> UnitRun:
         _worker_study.clear()
         _worker_study[reference.hex()] = (study, rebuild_policy(study))
     study, policy = _worker_study[reference.hex()]
-    configs, scenario_lists = study.groups[unit.group]
-    return run_unit(policy, configs, scenario_lists, unit.seeds, study.n_steps,
-                    study.noise_seed, progress=False, delay=study.delay,
-                    handover=study.handover)
+    return run_group_unit(policy, study.groups[unit.group], unit, study.n_steps)
+
+
+def run_group_unit(policy: DiffusionPolicy, group: Group, unit: Unit, n_steps: int,
+                   progress: bool = False) -> UnitRun:
+    """One unit of `group`, here."""
+    from constrained_diffusion_ros.evaluation.runner import run_unit
+
+    return run_unit(policy, group.configs, group.scenario_lists, unit.seeds, n_steps,
+                    progress=progress, delay=group.delay, handover=group.handover)
 
 
 def check_reachable(address: str) -> None:
@@ -119,19 +132,21 @@ def check_reachable(address: str) -> None:
 @contextmanager
 def ray_session(address: str | None, workers: int) -> Iterator[None]:
     """Connected to the cluster at `address` ('auto', host:port, ray://host:port), or to a
-    local one of `workers` CPUs started for the run (None); left as found when Ray was
-    already initialised in this process (a notebook, a test's cluster). ValueError in one line
-    when the cluster cannot be reached."""
+    local one of `workers` CPUs started for the run (None); when Ray is already initialised in
+    this process (a notebook, a test's cluster), that connection is used and left as found.
+    ValueError in one line when the cluster cannot be reached."""
     import ray
 
+    if address is not None:
+        check_reachable(address)
     if ray.is_initialized():
         yield
         return
     try:
         if address is None:
-            ray.init(num_cpus=workers, include_dashboard=False, logging_level="ERROR")
+            ray.init(address="local", num_cpus=workers, include_dashboard=False,
+                     logging_level="ERROR")
         else:
-            check_reachable(address)
             ray.init(address=address, logging_level="ERROR")
     except (ConnectionError, RuntimeError, ValueError) as error:
         raise ValueError(f"cannot reach the Ray cluster at {address}: {one_line(error)}"
@@ -169,6 +184,53 @@ def unit_runs(study: Study, units: Sequence[Unit]) -> Iterator[tuple[Unit, UnitR
 
 
 
+def group_results(policy: DiffusionPolicy, groups: Sequence[Group], seeds: Sequence[int],
+                  n_steps: int, args: argparse.Namespace) -> Iterator[tuple[int, tuple]]:
+    """Every group on `seeds`, in units of `args.unit` seeds, run here one after the other or
+    with `args.ray` as Ray tasks, with a progress bar over episodes; yields (group index,
+    `runner.assemble`'s cells, log and first rows) as soon as all of a group's units are in.
+    Closing it early (Ctrl-C) cancels what Ray has not finished."""
+    from tqdm import tqdm
+
+    from constrained_diffusion_ros.evaluation.runner import (
+        Unit,
+        assemble,
+        episodes_per_seed,
+        seed_blocks,
+    )
+
+    units = [Unit(index, block) for index in range(len(groups))
+             for block in seed_blocks(seeds, args.unit)]
+    per_seed = [episodes_per_seed(group.configs, group.scenario_lists) for group in groups]
+    if not units:  # every cell reused: no cluster to start
+        return
+    if args.ray:
+        study = Study(model_files(args.model), getattr(args, "device", "cpu"),
+                      getattr(args, "runtime", "torch"), args.ray_threads, list(groups),
+                      n_steps)
+        session = ray_session(cluster_address(args), args.ray_workers)
+    else:
+        session = nullcontext()
+    runs: dict[tuple[int, int], UnitRun] = {}  # by unit: a unit run twice is kept once
+    left = Counter(unit.group for unit in units)
+    with session, tqdm(total=sum(len(u.seeds) * per_seed[u.group] for u in units),
+                       desc="episodes", unit="episode") as bar:
+        stream = (unit_runs(study, units) if args.ray else
+                  ((unit, run_group_unit(policy, groups[unit.group], unit, n_steps, True))
+                   for unit in units))
+        with closing(stream):
+            for unit, result in stream:
+                if unit.key in runs:
+                    continue
+                runs[unit.key] = result
+                bar.update(len(unit.seeds) * per_seed[unit.group])
+                left[unit.group] -= 1
+                if not left[unit.group]:
+                    group = groups[unit.group]
+                    own = [runs[u.key] for u in units if u.group == unit.group]
+                    yield unit.group, assemble(group.configs, group.scenario_lists, own)
+
+
 def add_ray_arguments(parser: argparse.ArgumentParser) -> None:
     """--unit, --ray, --ray-workers and --ray-threads, alike in every command that runs units."""
     parser.add_argument("--unit", type=positive_int, default=DEFAULT_UNIT_SIZE, metavar="SEEDS",
@@ -189,7 +251,7 @@ def add_ray_arguments(parser: argparse.ArgumentParser) -> None:
 def cluster_address(args: argparse.Namespace) -> str | None:
     """The address of a --ray run, None for a local cluster started for the run; ValueError
     for arguments that do not go together."""
-    if args.device != "cpu":
+    if getattr(args, "device", "cpu") != "cpu":
         raise ValueError(f"--ray runs the network on the workers' CPUs, not --device "
                          f"{args.device}")
     return None if args.ray == LOCAL_CLUSTER else args.ray

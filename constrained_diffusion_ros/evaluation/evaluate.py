@@ -15,9 +15,7 @@ import argparse
 import json
 import sys
 import time
-from collections import Counter
-from collections.abc import Iterator, Sequence
-from contextlib import closing, nullcontext
+from contextlib import closing
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -32,8 +30,7 @@ from constrained_diffusion_ros.evaluation import distributed
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 
 if TYPE_CHECKING:  # torch and shapely come with it: imported once the arguments are read
-    from constrained_diffusion_ros.evaluation.runner import CellResult, Unit, UnitRun
-    from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
+    from constrained_diffusion_ros.evaluation.runner import CellResult
 
 INTERRUPTED = 130  # a shell's code for a command stopped by Ctrl-C
 
@@ -109,35 +106,19 @@ def figure_cell(args: argparse.Namespace, evaluated: set[tuple[str, str]]) -> tu
     return tuple(args.figure)
 
 
-def local_runs(policy: DiffusionPolicy, groups: Sequence[tuple[list, list]],
-               units: Sequence[Unit], n_steps: int) -> Iterator[tuple[Unit, UnitRun]]:
-    """The units run here, one after the other, with a progress bar over each one's steps."""
-    from constrained_diffusion_ros.evaluation.runner import run_unit
-
-    for unit in units:
-        configs, scenario_lists = groups[unit.group]
-        yield unit, run_unit(policy, configs, scenario_lists, unit.seeds, n_steps,
-                             progress=True)
-
-
 def run(args: argparse.Namespace) -> int:
     import torch
     from tqdm import tqdm
 
     from constrained_diffusion_ros.evaluation import report
     from constrained_diffusion_ros.evaluation.configurations import load_evaluated
-    from constrained_diffusion_ros.evaluation.runner import (
-        Unit,
-        assemble,
-        episodes_per_seed,
-        seed_blocks,
-    )
     from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 
     directory = Path(args.config_dir)
     if not directory.is_dir():
         raise ValueError(f"--config-dir {directory}: no such directory")
-    address = distributed.cluster_address(args) if args.ray else None
+    if args.ray:  # arguments that do not go together are said before any work
+        distributed.cluster_address(args)
     scenarios = select(load_scenarios(directory / "scenarios.yaml"), args.scenarios, "scenarios")
     configs = select(load_evaluated(directory), args.configs, "configurations")
     chosen_of = {c.name: [s for s in scenarios if s.paper or c.scenarios == "all"]
@@ -170,49 +151,27 @@ def run(args: argparse.Namespace) -> int:
         if missing:
             pending.setdefault(config.config.sampler_key, []).append((config, missing))
     named = list(pending.values())  # the sampler groups, with the configurations' names
-    groups = [([c.config for c, _ in group], [chosen for _, chosen in group]) for group in named]
-    units = [Unit(index, block) for index in range(len(groups))
-             for block in seed_blocks(seeds, args.unit)]
-    per_seed = [episodes_per_seed(*group) for group in groups]
-    if args.ray:
-        study = distributed.Study(distributed.model_files(args.model), args.device,
-                                  args.runtime, args.ray_threads, groups, args.steps)
-        session = distributed.ray_session(address, args.ray_workers)
-        where = f"as {len(units)} Ray tasks of {args.ray_threads} thread(s)"
-    else:
-        session = nullcontext()
-        where = f"on {torch.get_num_threads()} threads"
-    runs: dict[tuple[int, int], UnitRun] = {}  # by unit: a unit run twice is kept once
-    left = Counter(unit.group for unit in units)
+    groups = [distributed.Group([c.config for c, _ in group], [chosen for _, chosen in group])
+              for group in named]
+    where = (f"as Ray tasks of {args.ray_threads} thread(s), units of {args.unit} seeds"
+             if args.ray else
+             f"on {torch.get_num_threads()} threads, units of {args.unit} seeds")
     interrupted = False
-    with session, tqdm(total=sum(len(u.seeds) * per_seed[u.group] for u in units),
-                       desc="episodes", unit="episode", disable=not units) as bar:
-        stream = (distributed.unit_runs(study, units) if args.ray
-                  else local_runs(policy, groups, units, args.steps))
-        try:
-            with closing(stream):
-                for unit, result in stream:
-                    if unit.key in runs:
-                        continue
-                    runs[unit.key] = result
-                    bar.update(len(unit.seeds) * per_seed[unit.group])
-                    left[unit.group] -= 1
-                    if left[unit.group]:
-                        continue
-                    group = named[unit.group]
-                    own = [runs[u.key] for u in units if u.group == unit.group]
-                    results, log, first_rows = assemble(*groups[unit.group], own)
-                    cells += results
-                    tqdm.write(f"{', '.join(c.name for c, _ in group)}: {len(results)} cells x "
-                               f"{len(seeds)} episodes, {len(own)} unit(s) of up to "
-                               f"{results[0].batch} episodes, "
-                               f"{sum(r.wall_s for r in own):.0f} s of compute")
-                    if drawn in first_rows:
-                        scenario = next(s for s in scenarios if s.name == drawn[0])
-                        config = next(c for c, _ in group if c.name == drawn[1])
-                        figure = (log, first_rows[drawn], scenario, config)
-        except KeyboardInterrupt:
-            interrupted = True
+    try:
+        with closing(distributed.group_results(policy, groups, seeds, args.steps, args)
+                     ) as results:
+            for index, (done, log, first_rows) in results:
+                group = named[index]
+                cells += done
+                tqdm.write(f"{', '.join(c.name for c, _ in group)}: {len(done)} cells x "
+                           f"{len(seeds)} episodes, units of up to {done[0].batch} episodes, "
+                           f"{done[0].batch_wall_s:.0f} s of compute")
+                if drawn in first_rows:
+                    scenario = next(s for s in scenarios if s.name == drawn[0])
+                    config = next(c for c, _ in group if c.name == drawn[1])
+                    figure = (log, first_rows[drawn], scenario, config)
+    except KeyboardInterrupt:
+        interrupted = True
     wall = time.monotonic() - started
     if interrupted:
         print(f"evaluate: interrupted; {len(cells)} finished cells "
@@ -232,8 +191,8 @@ def run(args: argparse.Namespace) -> int:
         report.plot_frames(log, episode, scenario, output / "frames.png",
                            f"{config.label} on {scenario.label}, seed {seeds[0]}")
     summary = (f"{len(cells)} cells ({paper_cells} of the paper's), {len(seeds)} episodes "
-               f"each, {args.steps} steps, units of {args.unit} seeds; this run: {wall:.0f} s "
-               f"{where} for {len(cells) - reused} cells"
+               f"each, {args.steps} steps; this run: {wall:.0f} s {where} for "
+               f"{len(cells) - reused} cells"
                + (f" ({reused} reused from results.json)" if reused else "")
                + (" (interrupted: the cells whose units all finished)" if interrupted else ""))
     (output / "table.md").write_text(

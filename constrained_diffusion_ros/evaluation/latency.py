@@ -8,7 +8,8 @@ async_prefix (async with the committed waypoints inpainted into the new chunk). 
 r_body and the jump at chunk handovers (the distance between consecutive setpoints where a new
 chunk takes over, against the same within a chunk) and writes docs/latency.md and latency.json.
 With `--every-tick`, also every_tick: a plan asked at every observation that finds none on its
-way (async_prefix, the waypoints due before it arrives held fixed).
+way (async_prefix, the waypoints due before it arrives held fixed). Each run's seeds go in units
+of --unit, here or with --ray as Ray tasks, as in `evaluate`.
 """
 
 from __future__ import annotations
@@ -16,11 +17,13 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from contextlib import closing
 from pathlib import Path
 
 import numpy as np
 
 from constrained_diffusion_ros.cli import ArgumentParser, positive_int, run_command
+from constrained_diffusion_ros.evaluation import distributed
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.planning.config import load_configurations
 
@@ -64,23 +67,22 @@ def build_parser() -> argparse.ArgumentParser:
                         help="action steps per episode")
     parser.add_argument("--output", default="docs", help="where latency.md and .json go")
     parser.add_argument("--threads", type=positive_int, default=2, help="torch threads")
+    distributed.add_ray_arguments(parser)
     return parser
 
 
 def run(args: argparse.Namespace) -> int:
     import torch
-    from tqdm import tqdm
 
-    from constrained_diffusion_ros.evaluation.runner import (
-        DEFAULT_SEEDS,
-        evaluate_configurations,
-    )
+    from constrained_diffusion_ros.evaluation.runner import DEFAULT_SEEDS
     from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
     from constrained_diffusion_ros.planning.chunk_loop import EVERY_TICK, HANDOVERS
     from constrained_diffusion_ros.policy.weights import load_policy
 
     if min(args.delays) < 0:
         raise ValueError("--delays must be >= 0")
+    if args.ray:  # arguments that do not go together are said before any work
+        distributed.cluster_address(args)
     torch.set_num_threads(args.threads)
     directory = config_dir()
     known_scenarios = load_scenarios(directory / "scenarios.yaml")
@@ -100,25 +102,30 @@ def run(args: argparse.Namespace) -> int:
                       *((EVERY_TICK,) if c in args.every_tick else ()))]
     output = Path(args.output)
     output.mkdir(parents=True, exist_ok=True)
-    rows = kept_rows(output / "latency.json", args.configs)
-    for name, delay, handover in tqdm(runs, desc="latency", unit="run"):
-        cells, log, first_rows = evaluate_configurations(
-            policy, [known_configs[name]], [scenarios], seeds, args.steps, progress=False,
-            delay=delay, handover=handover)
-        by_scenario = {cell.scenario: cell for cell in cells}
-        for scenario in scenarios:
-            start = first_rows[(scenario.name, name)]
-            block = np.arange(start, start + len(seeds))
-            cell = by_scenario[scenario.name]
-            jump, within = handover_jumps(log.commanded[block], log.executed_chunk[block])
-            rows.append({"configuration": name, "scenario": scenario.name, "delay": delay,
-                         "handover": handover if delay or handover == EVERY_TICK else "none",
-                         "s": cell.s,
-                         "r": cell.r, "r_body": cell.r_body,
-                         "jump_at_handover_px": jump, "step_within_chunk_px": within,
-                         "episodes": len(seeds)})
-        (output / "latency.json").write_text(json.dumps(rows, indent=1) + "\n")  # as it goes
-        (output / "latency.md").write_text(markdown(rows, args))
+    kept = kept_rows(output / "latency.json", args.configs)
+    groups = [distributed.Group([known_configs[name]], [scenarios], delay, handover)
+              for name, delay, handover in runs]
+    done: dict[int, list[dict]] = {}  # run index -> its rows, written in the runs' order
+    with closing(distributed.group_results(policy, groups, seeds, args.steps, args)) as results:
+        for index, (cells, log, first_rows) in results:
+            name, delay, handover = runs[index]
+            by_scenario = {cell.scenario: cell for cell in cells}
+            done[index] = []
+            for scenario in scenarios:
+                start = first_rows[(scenario.name, name)]
+                block = np.arange(start, start + len(seeds))
+                cell = by_scenario[scenario.name]
+                jump, within = handover_jumps(log.commanded[block], log.executed_chunk[block])
+                done[index].append({
+                    "configuration": name, "scenario": scenario.name, "delay": delay,
+                    "handover": handover if delay or handover == EVERY_TICK else "none",
+                    "s": cell.s, "r": cell.r, "r_body": cell.r_body,
+                    "jump_at_handover_px": jump, "step_within_chunk_px": within,
+                    "episodes": len(seeds)})
+            rows = kept + [row for i in sorted(done) for row in done[i]]
+            (output / "latency.json").write_text(json.dumps(rows, indent=1) + "\n")  # as it goes
+            (output / "latency.md").write_text(markdown(rows, args))
+    rows = kept + [row for i in sorted(done) for row in done[i]]
     print(markdown(rows, args))
     return 0
 

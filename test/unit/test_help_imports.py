@@ -18,7 +18,7 @@ from unittest import mock
 import pytest
 
 REPO = Path(__file__).resolve().parents[2]
-HEAVY = ("torch", "rclpy", "shapely", "matplotlib", "onnxruntime", "diffusers", "zarr")
+HEAVY = ("torch", "rclpy", "shapely", "matplotlib", "onnxruntime", "diffusers", "zarr", "ray")
 # Runs an entry point as its console script would with `--help`, then says which heavy modules
 # had been imported by then.
 PROBE = """
@@ -74,8 +74,8 @@ def test_help_prints_usage_without_importing_heavy_modules(name: str) -> None:
 def test_the_defaults_help_shows_are_the_cores() -> None:
     """The defaults written out so that `--help` needs no torch equal those of the modules that
     own them."""
-    from constrained_diffusion_ros.evaluation import latency
-    from constrained_diffusion_ros.evaluation.runner import DEFAULT_SEEDS
+    from constrained_diffusion_ros.evaluation import distributed, latency
+    from constrained_diffusion_ros.evaluation.runner import DEFAULT_SEEDS, DEFAULT_UNIT_SIZE
     from constrained_diffusion_ros.nodes import policy_parameters as written
     from constrained_diffusion_ros.nodes import view_node, zone_publisher
     from constrained_diffusion_ros.policy import device, runtime
@@ -104,5 +104,6 @@ def test_the_defaults_help_shows_are_the_cores() -> None:
                                              math.isqrt(caps.cells)),
         "view_node max_vertices": (view_defaults["max_vertices"], live.DEFAULT_MAX_VERTICES),
         "latency.DEFAULT_EPISODES": (latency.DEFAULT_EPISODES, len(DEFAULT_SEEDS)),
+        "distributed.DEFAULT_UNIT_SIZE": (distributed.DEFAULT_UNIT_SIZE, DEFAULT_UNIT_SIZE),
     }
     assert {name: pair for name, pair in pairs.items() if pair[0] != pair[1]} == {}

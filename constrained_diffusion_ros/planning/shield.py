@@ -75,6 +75,7 @@ FEW = 2  # candidates that passed it, checked whole at once, in order
 # (speed x (age + reaction)), in DIRECTIONS directions, plus RETREAT_PX.
 RETREAT_REACHES = (1.0, 2.0)
 RETREAT_PX = 10.0
+TIE_PX = 1.0  # cornered: paths whose closest points are this near count as equally close
 
 
 class Path(NamedTuple):
@@ -244,11 +245,16 @@ class PusherShield:
         return self._margin(area, p, v, candidates, held, path) >= 0
 
     def _margin(self, area: RestrictedArea, p: Tensor, v: Tensor, candidates: Tensor,
-                held: Tensor | None = None, path: Path | None = None,
-                after_s: float = 0.0) -> Tensor:
+                held: Tensor | None = None, path: Path | None = None) -> Tensor:
         """(N, F) the least clearance beyond the required one along each candidate's paths
-        (`_safe`), over the points `after_s` or more from now: negative where it is not
-        safe."""
+        (`_safe`): negative where it is not safe."""
+        return self._margins(area, p, v, candidates, held, path)[0]
+
+    def _margins(self, area: RestrictedArea, p: Tensor, v: Tensor, candidates: Tensor,
+                 held: Tensor | None = None, path: Path | None = None,
+                 after_s: tuple[float, ...] = (0.0,)) -> Tensor:
+        """(A, N, F) `_margin` over the points of the paths `after_s[a]` or more from now, for
+        each of `after_s` (the distances taken once)."""
         coefficients, seconds = self.path if path is None else path
         a, b, c = coefficients.unbind(-1)
         starts = [0.0]
@@ -267,8 +273,9 @@ class PusherShield:
         when = (torch.tensor(starts, dtype=torch.float64)[:, None] + seconds[None])
         when = when.expand(n_candidates, *when.shape).reshape(1, -1)
         clearance = area.near(paths, self.clearance).signed_distance_after(paths, when)
-        clearance = torch.where(when >= after_s, clearance, torch.inf)
-        return clearance.reshape(count, n_candidates, -1).amin(dim=-1) - self.clearance
+        return torch.stack([
+            torch.where(when >= after, clearance, torch.inf).reshape(count, n_candidates, -1)
+            .amin(dim=-1) for after in after_s]) - self.clearance
 
     def _choose(self, area: RestrictedArea, p: Tensor, v: Tensor, held: Tensor,
                 goal: Tensor) -> tuple[Tensor, Tensor]:
@@ -289,8 +296,9 @@ class PusherShield:
             step = (goal - start).norm(dim=-1).clamp_min(1.0)
             around = goal[:, None] + step[:, None, None] * self.ring[None]
             out = area.project_out(goal.float(), 2 * self.margin).double()[:, None]
-            candidates = torch.cat([candidates, out, around, self._brakes(p, v, start),
-                                    *self._retreats(area, p, goal)], dim=1)
+            brakes, retreats = self._brakes(p, v, start), self._retreats(area, p, goal)
+            ways_out = torch.cat([candidates, out, brakes, *retreats], dim=1)
+            candidates = torch.cat([candidates, out, around, brakes, *retreats], dim=1)
             distance = (candidates - goal[:, None]).norm(dim=-1)
             order = distance.argsort(dim=1, stable=True)
             pick = self._first_safe(area, p, v, held, candidates, order)
@@ -309,30 +317,41 @@ class PusherShield:
                 follow = self._follow(area, p, v, held, goal, stalled)
                 fallback[stalled] = torch.where(follow.isnan(), fallback[stalled], follow)
         else:  # the largest safe step along the line
+            ways_out = candidates
             safe = self._safe(area, p, v, candidates, held)
             stuck = ~safe.any(dim=1)
             fallback = candidates[rows, safe.float().argmax(dim=1)]
         # No safe candidate (it started inside, or a zone moved onto it): head for the nearest
         # point `escape` px clear, so a zone still coming does not catch it at once. Cornered
-        # by a moving zone (no free space to retreat into): the candidate whose path keeps
-        # farthest from what the zones may reach, the separation as large as it can be, after
-        # the first control step (where the pusher is then, no setpoint changes much: a zone
-        # already that close would tie them all).
+        # by a moving zone (no free space to retreat into): the way out whose whole path keeps
+        # farthest from what the zones may reach (`_farthest`).
         if stuck.any():  # the area may be batch-aware (row b, zones b): query every row
             escape = area.project_out(p.float(), self.escape).double()
             fallback = torch.where(stuck[:, None], escape, fallback)
             if isinstance(area, MovingZones):
                 trapped = torch.nonzero(stuck & (area.reach() > 0)).flatten()
                 if len(trapped):
-                    candidates = torch.cat([candidates, escape[:, None]], dim=1)[trapped]
-                    candidates = torch.maximum(torch.minimum(candidates, self.high), self.low)
-                    margin = self._margin(area.select_rows(trapped), p[trapped], v[trapped],
-                                          candidates, after_s=self.tick_s)
-                    fallback[trapped] = candidates[torch.arange(len(trapped)),
-                                                   margin.argmax(dim=1)]
+                    # Ways out rather than points around the wanted setpoint: fewer paths
+                    # to check, on the executor's time while a hand closes in.
+                    ways_out = torch.cat([ways_out, escape[:, None]], dim=1)[trapped]
+                    ways_out = torch.maximum(torch.minimum(ways_out, self.high), self.low)
+                    farthest = self._farthest(area.select_rows(trapped), p[trapped],
+                                              v[trapped], ways_out)
+                    fallback[trapped] = ways_out[torch.arange(len(trapped)), farthest]
                     cornered[blocked[trapped]] = True
         chosen[blocked] = fallback
         return chosen, cornered
+
+    def _farthest(self, area: RestrictedArea, p: Tensor, v: Tensor, candidates: Tensor
+                  ) -> Tensor:
+        """(N,) for cornered pushers, the candidate (N, F, 2) whose path keeps farthest from
+        what the zones may reach all along it: its closest point decides, so no path runs
+        past a zone to a retreat beyond it (the pusher covers a hundred px and more within a
+        control step). Where that ties (within TIE_PX: a zone already so close that every
+        path's first points decide), the one kept farthest after the first control step."""
+        whole, later = self._margins(area, p, v, candidates, after_s=(0.0, self.tick_s))
+        tied = whole >= whole.amax(dim=1, keepdim=True) - TIE_PX
+        return torch.where(tied, later, -torch.inf).argmax(dim=1)
 
     def _retreats(self, area: RestrictedArea, p: Tensor, goal: Tensor) -> list[Tensor]:
         """[(N, R, 2)] points to retreat to from moving zones, around the pusher at multiples

@@ -447,13 +447,14 @@ BOUND = 300.0  # px/s: the speed a moving zone is assumed able to keep
 
 
 def chase(centre: tuple, side: float, speed: float, heading: float, homing: bool,
-          start: np.ndarray, goal: tuple, assumed: float = BOUND, ticks: int = 20
-          ) -> tuple[float, bool]:
+          start: np.ndarray, goal: tuple, assumed: float = BOUND, ticks: int = 20,
+          until_cornered: bool = True) -> tuple[float, bool]:
     """A square zone of `side` px from `centre` moving at `speed` px/s, along `heading` or
     homing on the pusher, a pusher at rest at `start` sent to `goal` through the shield, which
     takes the zone as able to move at `assumed` (from where it was seen, just now). Returns
     the least gap between the disc and the zone as it was at each physics substep (px,
-    negative: overlap) before the shield first said it was cornered, and whether it did."""
+    negative: overlap) before the shield first said it was cornered (with `until_cornered`;
+    else over all `ticks`), and whether it did."""
     robot, shield = PUSHT_ROBOT, PusherShield(PUSHT_ROBOT)
     half = side / 2
     drawn = ZoneSet.from_polygons([rectangle(-half, -half, half, half)])
@@ -461,13 +462,14 @@ def chase(centre: tuple, side: float, speed: float, heading: float, homing: bool
     position, velocity = np.asarray(start, dtype=float), np.zeros(2)
     offset = np.asarray(centre, dtype=float)
     zone_velocity = speed * np.array([np.cos(heading), np.sin(heading)])
-    closest = np.inf
+    closest, cornered = np.inf, False
     for tick in range(ticks):
         here = Translated(drawn, torch.from_numpy(offset))
         area = MovingZones(here, ZoneSet.empty(), here, assumed, 0.0, robot.reaction_s)
         area = area.bounded(robot.workspace).inflate(robot.pusher_radius)
         setpoint = shield(area, position[None], np.array([goal]), tick)[0]
-        if shield.cornered.any():
+        cornered |= bool(shield.cornered.any())
+        if cornered and until_cornered:
             return closest, True
         for _ in range(robot.substeps):
             if homing:  # straight for the pusher, at its speed
@@ -477,7 +479,7 @@ def chase(centre: tuple, side: float, speed: float, heading: float, homing: bool
             position, velocity = substep @ np.stack([position, velocity, setpoint])
             depth = drawn.signed_distance(torch.from_numpy(position - offset)[None])[0]
             closest = min(closest, float(depth) - robot.pusher_radius)
-    return closest, False
+    return closest, cornered
 
 
 @settings(max_examples=120, deadline=None)
@@ -513,3 +515,35 @@ def test_a_hand_homing_on_the_pusher_reaches_it_unless_the_shield_knows_it_moves
     static, _ = chase(centre, 60, 200.0, 0.0, True, start, tuple(start), assumed=0.0)
     moving, cornered = chase(centre, 60, 200.0, 0.0, True, start, tuple(start))
     assert static < -10 and moving > 0 and not cornered
+
+
+
+@pytest.mark.parametrize(("sent", "position", "hand", "goal"), [
+    ((301.1, 386.4), (404.0, 398.0), (371.0, 332.0), (282.0, 91.0)),
+    ((210.2, 275.5), (367.0, 415.0), (328.0, 355.0), (138.0, 168.0)),
+    ((502.0, 329.9), (458.0, 113.0), (395.0, 162.0), (166.0, 426.0)),
+])
+def test_a_cornered_pusher_never_runs_past_the_hand_to_a_retreat_beyond_it(
+        sent: tuple, position: tuple, hand: tuple, goal: tuple) -> None:
+    """Live homing trials' failure: a hand (60 px, assumed up to 300 px/s, seen 50 ms ago)
+    within what it can reach of a pusher that moves fast, the plan wanting the far side of it:
+    no setpoint is safe (cornered). A retreat beyond the hand ends farthest from it, but the
+    pusher covers the way there within a control step, through the hand. The setpoint taken
+    keeps the disc out of the hand as it stands, all along its path."""
+    robot = PUSHT_ROBOT
+    (pa, _, pc), (va, _, vc) = robot.transition(robot.substeps)[robot.substeps - 1]
+    sent, position = np.array([sent]), np.array([position])
+    before = (position - pc * sent) / pa  # at rest there a step ago, sent toward `sent`
+    velocity = va * before + vc * sent
+    shield = PusherShield(robot)
+    shield(None, before, sent, 0)
+    square = ZoneSet.from_polygons([rectangle(-30, -30, 30, 30)])
+    here = Translated(square, torch.tensor(hand, dtype=torch.float64))
+    area = MovingZones(here, ZoneSet.empty(), here, BOUND, 0.05, robot.reaction_s)
+    chosen = shield(area.bounded(robot.workspace).inflate(robot.pusher_radius), position,
+                    np.array([goal]), 1)
+    assert shield.cornered.all()
+    path = np.array([a[0] * position[0] + a[1] * velocity[0] + a[2] * chosen[0]
+                     for a in robot.transition(60)[:, 0]])
+    gap = here.signed_distance(torch.from_numpy(path)).min() - robot.pusher_radius
+    assert gap > 0, f"the path to {chosen[0].round(1)} runs {-gap:.1f} px into the hand"

@@ -75,6 +75,7 @@ class PolicyNode(Node):
         self.configuration_changes = 0
         self.changes_refused = 0  # run-time parameter changes refused for weakening the filter
         self.runs_restarted = 0  # realtime: observations whose stamp went back (a new run)
+        self.zone_updates_within_reach = 0  # moving zones' updates left to the next observation
         self._use_configuration(values["configuration"])
         startup.mark("planner and its worker")
         self.add_on_set_parameters_callback(self._on_parameters)
@@ -258,13 +259,18 @@ class PolicyNode(Node):
 
     # -- zones --------------------------------------------------------------------------------
 
-    def _zones_changed(self, received: float) -> None:
+    def _zones_changed(self, received: float, within_reach: bool = False) -> None:
         """The zones in force changed (a message that came at `received`, time.monotonic()):
         in realtime the held setpoint is checked now and a safe one published at once (how long
-        after: `zone_to_setpoint_ms` in the status)."""
+        after: `zone_to_setpoint_ms` in the status). Not for moving zones that stayed
+        `within_reach` of what the setpoint in force was checked against: it still holds, and
+        the next observation is answered against them (a hand republished at 20 Hz would
+        otherwise take the executor from the observations)."""
         self.reaction.zone_changed()
         self.sound.zones_changed()
-        if self.realtime:
+        if within_reach:
+            self.zone_updates_within_reach += 1
+        elif self.realtime:
             self.reaction.safe_setpoint_sent(received, self._send(self.loop.zones_changed()))
 
     # -- status -------------------------------------------------------------------------------
@@ -282,6 +288,7 @@ class PolicyNode(Node):
                   "configuration_changes": self.configuration_changes,
                   "changes_refused": self.changes_refused,
                   "runs_restarted": self.runs_restarted, "mode": self.mode,
+                  "zone_updates_within_reach": self.zone_updates_within_reach,
                   **self.output.status(), **self.observations.status(),
                   **self.standstills.status(self.robot.control_hz),
                   "plans": self.loop.stats.planner_calls, "planning_ms": f"{planning_ms:.1f}",

@@ -62,8 +62,10 @@ class Unread:
 
 class ZoneIngest:
     """Feeds `zones` from the node's zone topics, keep-out masks and clear service; calls
-    `on_change(received)` (time.monotonic() the message that changed them came, or now) on the
-    node's executor thread whenever the zones in force change.
+    `on_change(received, within_reach)` (time.monotonic() the message that changed them came,
+    or now; whether the change was only moving zones staying within the reach assumed of them,
+    `BatchOutcome.within_reach`) on the node's executor thread whenever the zones in force
+    change.
 
     Reads the node's `zone_lifetime` and `keepout_threshold` parameters at each message: they
     are settable at run time. `realtime`: masks are built on a thread of their own (zones and
@@ -73,7 +75,7 @@ class ZoneIngest:
     """
 
     def __init__(self, node: Node, zones: LiveZones, workspace: Bounds, mask_caps: MaskCaps,
-                 on_change: Callable[[float], None], realtime: bool,
+                 on_change: Callable[[float, bool], None], realtime: bool,
                  marker_period_s: float, alive: Callable[[], None] = lambda: None) -> None:
         self.node, self.zones, self.workspace, self.mask_caps = node, zones, workspace, mask_caps
         self.on_change, self.realtime, self.alive = on_change, realtime, alive
@@ -179,7 +181,7 @@ class ZoneIngest:
         outcome = self.zones.apply(updates, self._now(), lifetime)
         self._count(outcome, refused)
         if outcome.changed:
-            self._changed(received)
+            self._changed(received, outcome.within_reach)
         finished = time.monotonic()
         self._paced_until = finished + (finished - max(received, self._paced_until))
         self.alive()
@@ -312,8 +314,8 @@ class ZoneIngest:
 
     # -- what follows a change ----------------------------------------------------------------
 
-    def _changed(self, received: float | None = None) -> None:
-        self.on_change(time.monotonic() if received is None else received)
+    def _changed(self, received: float | None = None, within_reach: bool = False) -> None:
+        self.on_change(time.monotonic() if received is None else received, within_reach)
         if self.realtime:
             self._markers_due = True
         else:

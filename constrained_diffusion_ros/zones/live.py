@@ -60,6 +60,9 @@ class BatchOutcome:
     superseded: int = 0  # messages replaced by a later one for the same id in the batch
     refused: list[tuple[ZoneId, str]] = field(default_factory=list)  # (id, why)
     changed: bool = False  # the zones in force changed
+    # every change was a moving zone's update that stayed within what it was assumed able to
+    # reach (`LiveZones.within_reach`): setpoints checked against the zones before still hold
+    within_reach: bool = False
 
 
 # (id, vertices) or (id, vertices, stamp): a message as it came
@@ -107,6 +110,7 @@ class LiveZones:
         self._zones: dict[ZoneId, _Zone] = {}
         self._version = 0
         self._snapshot: ZoneSet | None = None
+        self._beyond_reach = False  # a change since `apply` began was not `within_reach`
 
     def upsert(
         self, zone_id: ZoneId, vertices: ArrayLike, now: float, lifetime: float | None = None,
@@ -147,13 +151,29 @@ class LiveZones:
                 raise ValueError(f"zone {zone_id!r}: {self.max_zones} zones in force already "
                                  f"(the cap); remove one first")
             age = 0.0 if stamp is None else min(max(now - stamp, 0.0), MAX_AGE_ON_ARRIVAL_S)
-            self._zones[zone_id] = _Zone(polygon, vertices, expires_at, capped, stamp,
-                                         time.monotonic() - age)
+            zone = _Zone(polygon, vertices, expires_at, capped, stamp, time.monotonic() - age)
+            within = previous is not None and self.within_reach(zone_id, previous, zone)
+            self._zones[zone_id] = zone
             self.motion.observe(zone_id, shapely.get_coordinates(polygon.centroid)[0],
                                 now if stamp is None else stamp)
             if previous is None or not previous.polygon.equals_exact(polygon, 0.0):
-                self._changed()  # a re-published, identical zone only refreshes its lifetime
+                # (a re-published, identical zone only refreshes its lifetime)
+                self._changed(within_reach=within)
         return True
+
+    def within_reach(self, zone_id: ZoneId, previous: _Zone, zone: _Zone) -> bool:
+        """Whether `zone`, an update of `previous`, lies wholly within what `previous` was
+        assumed able to reach by the time it was seen (its assumed speed times the time
+        between the two, `MovingZones`). A setpoint the shield accepted against `previous`
+        then still holds until the next observation is answered: the update needs no answer
+        of its own (a hand tracked at 20 Hz would otherwise cost a shield call per update).
+        Never for a zone not yet seen moving, one that changed faster than assumed, or a
+        change in shape beyond that reach."""
+        speed = self.motion.assumed_speed(zone_id)
+        if speed <= 0:
+            return False
+        reach = speed * max(0.0, zone.seen_at - previous.seen_at)
+        return bool(previous.polygon.buffer(reach).covers(zone.polygon))
 
     def apply(self, updates: Iterable[Update], now: float,
               lifetime: float | None = None, capped: bool = True) -> BatchOutcome:
@@ -162,7 +182,7 @@ class LiveZones:
         updates = list(updates)
         latest = coalesce(updates)
         outcome = BatchOutcome(received=len(updates), superseded=len(updates) - len(latest))
-        before = self._version
+        before, self._beyond_reach = self._version, False
         for zone_id, (vertices, stamp) in latest.items():
             try:
                 fresh = self.upsert(zone_id, vertices, now, lifetime, stamp, capped)
@@ -172,6 +192,7 @@ class LiveZones:
                 outcome.applied += fresh
                 outcome.stale += not fresh
         outcome.changed = self._version != before
+        outcome.within_reach = outcome.changed and not self._beyond_reach
         return outcome
 
     def remove(self, zone_id: ZoneId) -> bool:
@@ -293,7 +314,8 @@ class LiveZones:
     def __len__(self) -> int:
         return len(self._zones)
 
-    def _changed(self) -> None:
-        """Record a change; caller holds the lock."""
+    def _changed(self, within_reach: bool = False) -> None:
+        """Record a change (`within_reach`: see `within_reach`); caller holds the lock."""
         self._version += 1
         self._snapshot = None
+        self._beyond_reach |= not within_reach

@@ -134,3 +134,24 @@ def test_after_a_clear_a_replay_of_a_cleared_message_is_stale() -> None:
     assert zones.upsert(1, rectangle(0, 0, 10, 10), now=6.0, stamp=0.5)  # a new message
     assert zones.upsert(3, rectangle(20, 20, 30, 30), now=6.0, stamp=4.0)
     assert zones.ids == [1, 3]
+
+
+def test_a_moving_zone_within_the_reach_assumed_of_it_needs_no_answer_of_its_own() -> None:
+    """A hand republished at 20 Hz: once it is seen moving, an update that stays within what
+    it was assumed able to reach (its assumed speed times the time between the two) leaves
+    the setpoints checked before sound; a faster jump, a zone that grows beyond that reach, a
+    new zone and a removal are not within reach (the node answers them at once)."""
+    zones = LiveZones()
+
+    def update(x: float, stamp: float, side: float = 20.0) -> bool:
+        outcome = zones.apply([(1, rectangle(x, 100, x + side, 100 + side), stamp)], now=10.0)
+        assert outcome.changed
+        return outcome.within_reach
+
+    assert not update(100, 9.00)  # new
+    assert not update(105, 9.05)  # first seen moving: it was taken to stand still
+    assert update(110, 9.10) and update(115, 9.15)  # 100 px/s, 150 px/s assumed
+    assert not update(135, 9.20)  # 400 px/s
+    assert not update(140, 9.25, side=40)  # 5 px on, but 20 px wider: beyond 300 px/s x 50 ms
+    removed = zones.apply([(1, [], 9.30)], now=10.0)
+    assert removed.changed and not removed.within_reach

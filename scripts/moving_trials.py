@@ -78,6 +78,9 @@ class MovingTrial:
     # zone is in force, so updates in the last 0.5 s before the removal may be missed.
     exceeded: int | None = None
     standstill: int = 0  # the longest run of still steps with the zone within NEAR_PX
+    # Rise of its zone_updates_within_reach: updates left to the next observation's answer
+    within_reach: int = 0
+    updates: int = 0  # zone messages published (the removal included)
 
 
 def inside_box(centres: np.ndarray) -> np.ndarray:
@@ -161,7 +164,7 @@ def measure(client: Client, published: list[tuple[float, np.ndarray | None]],
         index = bisect_right(times, t) - 1
         return index if index >= 0 and shapes[index] is not None else None
 
-    trial = MovingTrial()
+    trial = MovingTrial(updates=len(published))
     run = 0
     pushers = client.pushers[max(1, first_pusher):]
     previous = client.pushers[max(1, first_pusher) - 1]
@@ -190,15 +193,18 @@ def measure(client: Client, published: list[tuple[float, np.ndarray | None]],
             trial.grazing += int(shapes[index].distance(point) < AGENT_RADIUS)
     after = counters(client)
     trial.cornered = (after["cornered_steps"] or 0) - (before["cornered_steps"] or 0)
+    trial.within_reach = ((after["zone_updates_within_reach"] or 0)
+                          - (before["zone_updates_within_reach"] or 0))
     if after["zone_speed_exceeded"] is not None:
         trial.exceeded = after["zone_speed_exceeded"] - (before["zone_speed_exceeded"] or 0)
     return trial
 
 
 def counters(client: Client) -> dict[str, int | None]:
-    """The node's cornered_steps and zone_speed_exceeded as it last reported them."""
+    """The node's cornered_steps, zone_speed_exceeded and zone_updates_within_reach as it
+    last reported them."""
     return {key: int(float(client.status[key])) if key in client.status else None
-            for key in ("cornered_steps", "zone_speed_exceeded")}
+            for key in ("cornered_steps", "zone_speed_exceeded", "zone_updates_within_reach")}
 
 
 def run_moving_trials(client: Client, args: argparse.Namespace, first_seed: int,
@@ -245,5 +251,7 @@ def report_moving(configuration: str, results: dict[tuple[str, float], list[Movi
               f"as published {1000 * SEEN_S:.0f} ms before {sum(t.inside for t in trials)} "
               f"(within the pusher radius of it {sum(t.grazing for t in trials)}); cornered "
               f"steps {sum(t.cornered for t in trials)}; zone_speed_exceeded "
-              f"{sum(exceeded) if exceeded else 'not reported'}; longest standstill with the "
-              f"zone within {NEAR_PX:.0f} px {max(t.standstill for t in trials)} steps")
+              f"{sum(exceeded) if exceeded else 'not reported'}; updates within the reach "
+              f"assumed (left to the next observation) {sum(t.within_reach for t in trials)} of "
+              f"{sum(t.updates for t in trials)}; longest standstill with the zone "
+              f"within {NEAR_PX:.0f} px {max(t.standstill for t in trials)} steps")

@@ -3,8 +3,9 @@
 A unit's episodes depend on its seeds and the study only, so a unit run here, on one worker or
 on another gives the same figures, and a unit that a dead worker left unfinished is simply run
 again (Ray's task retries) and counted once (results are kept by unit). The policy travels as
-its files (safetensors and JSON config) in the object store, put once and fetched once per node;
-each worker process rebuilds it once per study. Ray is imported inside the functions that use
+its files (safetensors and JSON config) in the object store: put once, copied to each node once,
+rebuilt once per worker process and study. The code does not travel: each worker machine has
+the package installed (docs/cluster.md). Ray is imported inside the functions that use
 it: a run without --ray never imports it.
 """
 
@@ -183,7 +184,6 @@ def unit_runs(study: Study, units: Sequence[Unit]) -> Iterator[tuple[Unit, UnitR
             ray.cancel(reference, force=True)
 
 
-
 def group_results(policy: DiffusionPolicy, groups: Sequence[Group], seeds: Sequence[int],
                   n_steps: int, args: argparse.Namespace) -> Iterator[tuple[int, tuple]]:
     """Every group on `seeds`, in units of `args.unit` seeds, run here one after the other or
@@ -220,7 +220,7 @@ def group_results(policy: DiffusionPolicy, groups: Sequence[Group], seeds: Seque
                    for unit in units))
         with closing(stream):
             for unit, result in stream:
-                if unit.key in runs:
+                if unit.key in runs:  # cannot happen (one task per unit); never counted twice
                     continue
                 runs[unit.key] = result
                 bar.update(len(unit.seeds) * per_seed[unit.group])

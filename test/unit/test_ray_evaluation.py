@@ -194,13 +194,16 @@ def test_an_unreachable_cluster_is_one_line_and_exit_2(
     assert not (tmp_path / "o" / "results.json").exists()
 
 
-def test_ctrl_c_keeps_the_finished_cells_and_exits_130(model: Path, tmp_path: Path) -> None:
+@pytest.mark.parametrize("on_ray", [False, True], ids=["here", "ray"])
+def test_ctrl_c_keeps_the_finished_cells_and_exits_130(
+        model: Path, tmp_path: Path, on_ray: bool, request: pytest.FixtureRequest) -> None:
     """Interrupted once the first sampler group is done, the run writes that group's cells."""
     output = tmp_path / "stopped"
+    ray_args = ["--ray", request.getfixturevalue("cluster")] if on_ray else []
     driver = subprocess.Popen(
         command("--model", str(model), "--scenarios", "left_0.5", "center_0.2", "--configs",
                 "ddim10_r_g10_p_safe", "none", "--episodes", "6", "--steps", "40", "--unit",
-                "1", "--threads", "1", "--output", str(output)),
+                "1", "--threads", "1", "--output", str(output), *ray_args),
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
         env=environment())
     for line in driver.stdout:

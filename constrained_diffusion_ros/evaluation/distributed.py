@@ -111,7 +111,7 @@ def run_group_unit(policy: DiffusionPolicy, group: Group, unit: Unit, n_steps: i
     from constrained_diffusion_ros.evaluation.runner import run_unit
 
     return run_unit(policy, group.configs, group.scenario_lists, unit.seeds, n_steps,
-                    progress=progress, delay=group.delay, handover=group.handover)
+                    unit.noise_seed, progress, group.delay, group.handover)
 
 
 def check_reachable(address: str) -> None:
@@ -193,14 +193,12 @@ def group_results(policy: DiffusionPolicy, groups: Sequence[Group], seeds: Seque
     from tqdm import tqdm
 
     from constrained_diffusion_ros.evaluation.runner import (
-        Unit,
         assemble,
         episodes_per_seed,
-        seed_blocks,
+        study_units,
     )
 
-    units = [Unit(index, block) for index in range(len(groups))
-             for block in seed_blocks(seeds, args.unit)]
+    units = study_units(len(groups), seeds, args.unit)
     per_seed = [episodes_per_seed(group.configs, group.scenario_lists) for group in groups]
     if not units:  # every cell reused: no cluster to start
         return

@@ -292,12 +292,13 @@ def _layout(configs: Sequence[ConstraintConfig], scenario_lists: Sequence[Sequen
 @dataclass(frozen=True)
 class Unit:
     """A fixed piece of a study: the configurations of one sampler group, each on its
-    scenarios, for a block of consecutive seeds, run as one batch with its own noise. Units
-    depend on the seeds and the unit size only, never on how many workers run them, so any
-    worker count runs the same batches and gives the same episodes."""
+    scenarios, for a block of consecutive seeds, run as one batch with its own noise seed.
+    Units depend on the study's seeds, unit size and noise seed only, never on how many
+    workers run them, so any worker count runs the same batches and gives the same episodes."""
 
     group: int  # index of the sampler group in the study
     seeds: tuple[int, ...]
+    noise_seed: int
 
     @property
     def key(self) -> tuple[int, int]:
@@ -313,18 +314,17 @@ class UnitRun:
     wall_s: float
 
 
-def seed_blocks(seeds: Sequence[int], unit_size: int) -> list[tuple[int, ...]]:
-    """`seeds` in consecutive blocks of `unit_size` (the last may be shorter)."""
+def study_units(n_groups: int, seeds: Sequence[int], unit_size: int, noise_seed: int = 0
+                ) -> list[Unit]:
+    """Each group's `seeds` in consecutive blocks of `unit_size` (the last may be shorter),
+    group after group. A unit's noise seed is `noise_seed` plus how far into the seeds its own
+    start: the first unit draws the study's noise seed, so a study of one unit per group (up
+    to `unit_size` seeds) draws the noise it drew as one batch, as a trial of one seed with the
+    node's `noise_seed` does."""
     if unit_size < 1:
         raise ValueError(f"a unit holds at least one seed, not {unit_size}")
-    return [tuple(seeds[i:i + unit_size]) for i in range(0, len(seeds), unit_size)]
-
-
-def unit_noise_seed(noise_seed: int, first_seed: int) -> int:
-    """The noise seed of the unit whose seeds start at `first_seed`: derived from its own
-    episodes, not from its place in a run, and equal to `noise_seed` for the unit that starts
-    at the first default seed, so a default study draws the noise it drew as one batch."""
-    return noise_seed + first_seed - DEFAULT_SEEDS[0]
+    return [Unit(group, tuple(seeds[start:start + unit_size]), noise_seed + start)
+            for group in range(n_groups) for start in range(0, len(seeds), unit_size)]
 
 
 def run_unit(policy: DiffusionPolicy, configs: Sequence[ConstraintConfig],
@@ -333,14 +333,14 @@ def run_unit(policy: DiffusionPolicy, configs: Sequence[ConstraintConfig],
              handover: str = "sync") -> UnitRun:
     """One unit: configurations that share a sampler (one `sampler_key`), each on its
     scenarios x `seeds`, as one batch of episodes laid out as `_layout` says, with a noise
-    generator seeded by `unit_noise_seed`."""
+    generator seeded by `noise_seed` (the unit's, `study_units`)."""
     scenarios = list(dict.fromkeys(s for chosen in scenario_lists for s in chosen))
     blocks = _layout(configs, scenario_lists, scenarios, len(seeds))
     owner = np.concatenate([np.full(b.stop - b.start, b.config) for b in blocks])
     scenario_of_row = np.concatenate([np.full(b.stop - b.start, b.scenarios[0]) for b in blocks])
     planner = MixedPlanner(policy, configs, PUSHT_ROBOT, owner)
     zones = ScenarioZones(scenarios, scenario_of_row)
-    generator = torch.Generator().manual_seed(unit_noise_seed(noise_seed, seeds[0]))
+    generator = torch.Generator().manual_seed(noise_seed)
     started = time.monotonic()
     log = rollout(planner, [seed for _ in blocks for seed in seeds], n_steps, zones, generator,
                   progress=progress, description=", ".join(c.name for c in configs),
@@ -423,8 +423,9 @@ def evaluate_configurations(policy: DiffusionPolicy, configs: Sequence[Constrain
     """Configurations that share a sampler (one `sampler_key`), each on its scenarios x seeds,
     run here unit after unit (`unit_size` seeds each, `Unit`). Returns the cells, the merged
     log and, per (scenario, configuration), the log row of its first episode."""
-    runs = [run_unit(policy, configs, scenario_lists, block, n_steps, noise_seed, progress,
-                     delay, handover) for block in seed_blocks(seeds, unit_size)]
+    runs = [run_unit(policy, configs, scenario_lists, unit.seeds, n_steps, unit.noise_seed,
+                     progress, delay, handover)
+            for unit in study_units(1, seeds, unit_size, noise_seed)]
     return assemble(configs, scenario_lists, runs)
 
 

@@ -22,8 +22,7 @@ from constrained_diffusion_ros.evaluation import evaluate
 from constrained_diffusion_ros.evaluation.runner import (
     evaluate_configurations,
     run_unit,
-    seed_blocks,
-    unit_noise_seed,
+    study_units,
 )
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 from constrained_diffusion_ros.planning.config import ConstraintConfig
@@ -112,14 +111,17 @@ def test_a_unit_run_alone_gives_the_rows_it_gives_in_a_study(
     configs = [ConstraintConfig("blind", sampler="ddim", denoising_steps=2),
                ConstraintConfig("projected", sampler="ddim", denoising_steps=2, project=True)]
     seeds = list(range(100000, 100005))
-    assert seed_blocks(seeds, 2) == [(100000, 100001), (100002, 100003), (100004,)]
-    assert unit_noise_seed(7, 100000) == 7 and unit_noise_seed(7, 100002) == 9
+    units = study_units(2, seeds, 2, noise_seed=7)
+    assert [(u.group, u.seeds, u.noise_seed) for u in units[:3]] == [
+        (0, (100000, 100001), 7), (0, (100002, 100003), 9), (0, (100004,), 11)]
+    assert [u.group for u in units] == [0, 0, 0, 1, 1, 1]
     cells, log, first_rows = evaluate_configurations(
         tiny_policy, configs, [chosen, chosen], seeds, n_steps=6, progress=False, unit_size=2)
     # The merged log is laid out as one batch of all the seeds: block by block, seeds in order.
     assert log.seeds == seeds * 4  # blind: one block (the homing zone has its own), projected: 2
     assert first_rows[("left_0.5", "projected")] == 10
-    middle = run_unit(tiny_policy, configs, [chosen, chosen], (100002, 100003), 6).log
+    middle = run_unit(tiny_policy, configs, [chosen, chosen], (100002, 100003), 6,
+                      noise_seed=2).log
     for block in range(4):
         np.testing.assert_array_equal(log.commanded[5 * block + 2: 5 * block + 4],
                                       middle.commanded[2 * block: 2 * block + 2])

@@ -11,6 +11,7 @@ that it was not granted, and a probe that it cannot tell.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
 from pathlib import Path
@@ -60,6 +61,30 @@ def may_leave_idle(niceness: int) -> bool:
     prober.start()
     prober.join()
     return allowed == [True]
+
+
+def lower_own_priority(niceness: int, idle: bool) -> None:
+    """This process's nice value raised by `niceness` (kept if it goes back from idle to
+    normal scheduling), and SCHED_IDLE with `idle`; what is not allowed is left as it was.
+    Threads started afterwards inherit it."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.nice(niceness)
+        if idle:
+            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+
+
+def schedule_process(pid: int, idle: bool) -> None:
+    """Every thread of process `pid` to SCHED_IDLE (`idle`) or normal scheduling. Threads that
+    end meanwhile are passed over, and nothing is done for a process that is gone; a change
+    not allowed raises OSError."""
+    try:
+        threads = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return
+    policy = os.SCHED_IDLE if idle else os.SCHED_OTHER
+    for thread in threads:
+        with contextlib.suppress(ProcessLookupError):
+            os.sched_setscheduler(int(thread), policy, os.sched_param(0))
 
 
 def scheduling(pid: int = 0) -> str:

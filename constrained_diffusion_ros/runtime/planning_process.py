@@ -4,144 +4,41 @@ Denoising runs hundreds of torch calls with Python between them, all under the i
 lock, which the control clock and the zone callbacks need too; a child process has an
 interpreter of its own, so the node's threads never wait behind planning, and a planner that
 crashes does not take the node with it, as LeRobot's asynchronous inference keeps the policy in
-a server of its own. The child is a plain interpreter started on a command line that names this
-module (`child_command`) and runs `serve`; the node and the child speak over a socket pair in
-the messages of plan_jobs.py (`Request`, `Reply`).
+a server of its own. Three jobs, three modules: what the child runs and the messages both sides
+speak (planning_child.py), its scheduling and the watch that keeps idle priority from starving
+it (priority_watch.py), and here the node's side: jobs handed over, replies received, and the
+child started, given what it needs and started again when it dies.
 """
 
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import logging
 import os
 import pickle
 import socket
-import struct
 import subprocess
-import sys
-import termios
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import replace
 from multiprocessing.connection import Connection
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from constrained_diffusion_ros.planning.plan_jobs import (
-    PlanJob,
-    PlanResult,
-    Reply,
-    Request,
-    plan_chunk,
-)
+from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult, Reply, Request
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
-from constrained_diffusion_ros.runtime.os_scheduling import (
-    CpuShare,
-    may_leave_idle,
-    process_sample,
-    scheduling,
-)
-from constrained_diffusion_ros.sampling.sampler import Interrupted
+from constrained_diffusion_ros.runtime.os_scheduling import may_leave_idle
+from constrained_diffusion_ros.runtime.planning_child import child_command, encode, send, unread
+from constrained_diffusion_ros.runtime.priority_watch import WATCH_PERIOD_S, PriorityWatch
 from constrained_diffusion_ros.zones.area import RestrictedArea
 from constrained_diffusion_ros.zones.plugins import ZoneCheckError
 
 LOGGER = logging.getLogger(__name__)
 
-WATCH_PERIOD_S = 0.5  # how often the node looks at what the planning process gets
-IDLE_RETRY_S = 60.0  # at normal scheduling after starving, before idle priority is tried again
-IDLE_RETRY_MAX_S = 960.0  # the wait doubles at each try, up to this
 RESTART_LIMIT = 5  # children started in a row with no plan between them, before giving up
 RESTART_DELAY_S = 0.5  # before the first restart; doubled for each next one in a row
 RESTART_DELAY_MAX_S = 8.0
-
-
-def _message(kind: Request | Reply, payload: object) -> bytes:
-    """(kind, pickled payload): the kind always reads back, even where the payload cannot (a
-    class the other side cannot import), so every job gets its reply. The kind goes as a plain
-    string."""
-    data = pickle.dumps(payload, protocol=pickle.HIGHEST_PROTOCOL)
-    return pickle.dumps((str(kind), data), protocol=pickle.HIGHEST_PROTOCOL)
-
-
-def _send(connection: Connection, kind: Request | Reply, payload: object) -> None:
-    connection.send_bytes(_message(kind, payload))
-
-
-def serve(descriptor: int, threads: int, niceness: int, idle: bool = False) -> None:
-    """The child: plan each job with the planner and generator it was last given, until told
-    to stop or the node's end of the socket closes (the node died, even by SIGKILL: then a
-    plan in flight stops, its answer cannot be sent, and the child exits without a word)."""
-    connection = Connection(descriptor)
-    with contextlib.suppress(OSError, EOFError):  # the node is gone: nobody to answer
-        _serve(connection, threads, niceness, idle)
-
-
-def _serve(connection: Connection, threads: int, niceness: int, idle: bool) -> None:
-    """`serve`'s loop; returns when told to stop, raises OSError or EOFError when the node's
-    end of the socket is closed."""
-    with contextlib.suppress(OSError, AttributeError):
-        os.nice(niceness)  # kept if it goes back from idle to normal scheduling
-        if idle:  # before torch starts threads: they inherit it
-            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-    _send(connection, Reply.SCHEDULING, (scheduling(), 0.0))  # what it got, not what was asked
-    torch.set_num_threads(threads)
-    policy, planner, zones = None, None, None
-    generator = torch.Generator()
-    while True:
-        kind, data = pickle.loads(connection.recv_bytes())
-        if kind == Request.STOP:
-            return
-        began = time.perf_counter()
-        try:  # a fault is reported to the node; the child keeps serving
-            payload = pickle.loads(data)
-            if kind == Request.POLICY:
-                policy = payload
-            elif kind == Request.PLANNER:
-                planner = ConstrainedPlanner(policy, *payload)
-                planner.prepare_sampling()  # before the first job, not in it
-            elif kind == Request.SEED:
-                generator.manual_seed(payload)
-            elif kind == Request.JOB:
-                job, same_zones = payload
-                job = replace(job, zones=zones) if same_zones else job
-                zones = job.zones
-                # Any message while it plans makes the plan worthless (the node sends a job
-                # only to an idle child): a cancel, a new seed or planner, a stop.
-                chunk = plan_chunk(planner, job, generator, connection.poll)
-            # Request.CANCEL: the plan it stopped is answered already
-        except Interrupted:
-            _send(connection, Reply.CANCELLED, (None, time.perf_counter() - began))
-            continue
-        except Exception as error:
-            # Only a job's reply ends it.
-            reply = Reply.JOB_ERROR if kind == Request.JOB else Reply.ERROR
-            _send(connection, reply, (f"{type(error).__name__}: {error}",
-                                      time.perf_counter() - began))
-            continue
-        if kind == Request.JOB:  # outside the try: a send that fails is the node gone
-            _send(connection, Reply.CHUNK, (chunk, time.perf_counter() - began))
-
-
-def _unread(connection: Connection) -> int:
-    """Bytes sent on a socket that its peer has not read yet (0 where that cannot be told)."""
-    try:
-        queued = fcntl.ioctl(connection.fileno(), termios.TIOCOUTQ, bytes(4))
-    except OSError:
-        return 0
-    return struct.unpack("i", queued)[0]
-
-
-def child_command(descriptor: int, threads: int, niceness: int, idle: bool) -> list[str]:
-    """The planning child's command line: a plain interpreter that runs `serve`."""
-    # SIGINT ignored: Ctrl-C in a terminal reaches the whole process group, and the child ends
-    # with its node (told to stop, or finding the socket closed), not with a traceback.
-    code = (f"import signal; signal.signal(signal.SIGINT, signal.SIG_IGN); "
-            f"from {__name__} import serve; serve({descriptor}, {threads}, {niceness}, {idle})")
-    return [sys.executable, "-c", code]
 
 
 class PlanningProcess:
@@ -162,15 +59,10 @@ class PlanningProcess:
     this: what they send meanwhile is kept for the next child. `failed` is True from a fault
     until the next plan arrives; `restarts` counts the children started again.
 
-    The child plans at idle priority (SCHED_IDLE) where the node may take it back: any other
-    task that wakes, the middleware's threads and the robot's driver included, runs at once,
-    where at a nice value it would wait out the planner's time slice. A machine kept busy by
-    other work would starve it there; the receiver thread watches, and a child that gets less
-    than `STARVED_SHARE` of a core while planning (time it spent stopped not counted) goes to
-    normal scheduling at `niceness`, and back to idle after `IDLE_RETRY_S`, a wait that doubles
-    each time (a machine still busy sends it back at once). Elsewhere it plans at `niceness`
-    throughout. `priority` says how the child is scheduled as the child itself reports it
-    ("starting" until its report comes).
+    The child plans at idle priority (SCHED_IDLE) where the node may take it back, watched by
+    the receiver thread so that a busy machine does not starve it (`PriorityWatch`); elsewhere
+    at `niceness` throughout. `priority` says how the child is scheduled as the child itself
+    reports it ("starting" until its report comes).
     """
 
     def __init__(self, planner: ConstrainedPlanner,
@@ -183,13 +75,10 @@ class PlanningProcess:
         self._idle = idle and may_leave_idle(niceness)
         self._restart_limit, self._restart_delay = restart_limit, restart_delay
         self._restart_delay_max = restart_delay_max
-        self.priority = "starting"  # how the child is scheduled, as it reports it
-        self._starvation = CpuShare(WATCH_PERIOD_S)
-        self._left_idle_at: float | None = None  # monotonic s, when starving sent it off idle
-        self._idle_retry = IDLE_RETRY_S
+        self.watch = PriorityWatch()  # how the child is scheduled, and the starvation watch
         # What every child is given before its first job: the weights pickled once (a restart
         # then costs the node no interpreter time), the planner and the seed in use.
-        self._weights = _message(Request.POLICY, planner.policy)
+        self._weights = encode(Request.POLICY, planner.policy)
         self._planner_args = (planner.config, planner.robot)
         self._seed = noise_seed
         package_root = str(Path(__file__).resolve().parents[2])
@@ -210,7 +99,6 @@ class PlanningProcess:
         self.failed = False  # a fault since the last plan arrived
         self.restarts = 0  # children started again after one died
         self.cancelled = 0  # plans stopped in flight
-        self._watch_failed = False
         # The child starts its interpreter while the node goes on starting: the weights and
         # what follows go to it from the receiver thread, and a job asked for meanwhile waits.
         self._process, connection = self._spawn()
@@ -221,6 +109,11 @@ class PlanningProcess:
     @property
     def pid(self) -> int:
         return self._process.pid
+
+    @property
+    def priority(self) -> str:
+        """How the child is scheduled, as it reports it ("starting" until it does)."""
+        return self.watch.priority
 
     @property
     def ready(self) -> bool:
@@ -266,7 +159,7 @@ class PlanningProcess:
         if self._connection is None:
             return
         try:
-            _send(self._connection, kind, payload)
+            send(self._connection, kind, payload)
         except OSError as error:
             self._lost_locked(f"cannot send {str(kind)!r} to the planning process: {error}")
 
@@ -285,7 +178,7 @@ class PlanningProcess:
             process, connection, self._connection = self._process, self._connection, None
             if connection is not None:
                 with contextlib.suppress(OSError, ValueError):
-                    _send(connection, Request.STOP, None)
+                    send(connection, Request.STOP, None)
         self._stopped.set()
         try:
             process.wait(timeout)
@@ -301,14 +194,14 @@ class PlanningProcess:
         for as usual); one that cannot be sent dies with the child."""
         same = job.zones is not None and job.zones is self._sent_zones
         try:
-            message = _message(Request.JOB, (replace(job, zones=None) if same else job, same))
+            sent = encode(Request.JOB, (replace(job, zones=None) if same else job, same))
         except (pickle.PicklingError, TypeError, AttributeError) as error:
             self._fail(f"cannot send a plan to the planning process: {type(error).__name__}: "
                        f"{error}")
             return
         self._in_flight = job  # already: a send that waits for a starved child counts too
         try:
-            self._connection.send_bytes(message)
+            self._connection.send_bytes(sent)
         except OSError as error:
             self._lost_locked(f"cannot send a plan to the planning process: {error}")
             return
@@ -324,7 +217,7 @@ class PlanningProcess:
         self.error, self.errors, self.failed = RuntimeError(message), self.errors + 1, True
         LOGGER.error("planning process: %s", message)
 
-    # -- the receiver thread: supervision, replies and the priority watch -------------------
+    # -- the receiver thread: supervision and replies -----------------------------------------
 
     def _spawn(self) -> tuple[subprocess.Popen, Connection]:
         """A new child on a socket pair: a plain interpreter, not multiprocessing's spawn (that
@@ -380,8 +273,7 @@ class PlanningProcess:
                 if not stopping:
                     self._process = process
                     self.restarts += 1
-                    self.priority = "starting"
-                    self._starvation, self._left_idle_at = CpuShare(WATCH_PERIOD_S), None
+                    self.watch.child_started()
             if stopping:  # shut down meanwhile: the child reads the end of its socket and exits
                 connection.close()
                 with contextlib.suppress(subprocess.TimeoutExpired):
@@ -396,14 +288,14 @@ class PlanningProcess:
         or the worker was shut down first."""
         try:
             connection.send_bytes(self._weights)
-            while _unread(connection):  # whatever goes under the lock must not wait for it
+            while unread(connection):  # whatever goes under the lock must not wait for it
                 if self._stopped.wait(0.005):
                     return False
             with self._lock:
                 if self._stopping:
                     return False
-                _send(connection, Request.PLANNER, self._planner_args)
-                _send(connection, Request.SEED, self._seed)
+                send(connection, Request.PLANNER, self._planner_args)
+                send(connection, Request.SEED, self._seed)
                 self._connection, self._sent_zones = connection, None
                 if self._pending is not None:
                     job, self._pending = self._pending, None
@@ -435,7 +327,8 @@ class PlanningProcess:
         while True:
             try:
                 ready = connection.poll(WATCH_PERIOD_S)
-                self._watch_safely()
+                # without the lock: a send in progress holds it
+                self.watch.check(self.pid, self._in_flight)
                 if not ready:
                     continue
                 message = connection.recv_bytes()
@@ -450,7 +343,7 @@ class PlanningProcess:
                     self._process.kill()
                 return
             if kind == Reply.SCHEDULING:
-                self.priority = payload
+                self.watch.priority = payload
                 continue
             if kind == Reply.CHUNK:
                 self._in_a_row, self.failed = 0, False  # before the owner hears of it
@@ -475,65 +368,3 @@ class PlanningProcess:
         except Exception as error:  # the owner's fault: the receiver keeps serving
             LOGGER.exception("planning process: the result's handler failed")
             self.error, self.errors, self.failed = error, self.errors + 1, True
-
-    def _watch_safely(self) -> None:
-        """`_watch`, whose fault must not end the receiver thread (nor supervision with it)."""
-        try:
-            self._watch()
-        except Exception:
-            if not self._watch_failed:  # said once: it would fail every period
-                LOGGER.exception("planning process: watching its priority failed")
-            self._watch_failed = True
-
-    def _watch(self) -> None:
-        """At idle priority: a child starved by other work goes to normal scheduling. Off it
-        after starving: back to idle once the wait is over."""
-        now = time.monotonic()
-        if self.priority == "idle":
-            job = self._in_flight  # without the lock: a send in progress holds it
-            cpu, stopped = process_sample(self.pid)
-            if stopped:  # it asked for nothing: no window spans the stop
-                self._starvation.share(now, cpu, job, stopped=True)
-                return
-            share = self._starvation.starved(now, cpu, job)
-            if share is not None:
-                self._leave_idle(share)
-        elif self._left_idle_at is not None and now - self._left_idle_at >= self._idle_retry:
-            self._return_to_idle()
-
-    def _leave_idle(self, share: float) -> None:
-        threads: list[str] = []
-        with contextlib.suppress(OSError):  # the child is gone: the receiver says so
-            threads = os.listdir(f"/proc/{self.pid}/task")
-        for thread in threads:
-            try:
-                os.sched_setscheduler(int(thread), os.SCHED_OTHER, os.sched_param(0))
-            except ProcessLookupError:  # a thread that ended meanwhile
-                pass
-            except OSError as error:  # not allowed after all: say so, and stop trying
-                self.priority = "idle (starved: could not leave it)"
-                LOGGER.error("planning process starved at idle priority (%.0f%% of a core) and "
-                             "could not leave it: %s", 100 * share, error)
-                return
-        with contextlib.suppress(OSError):
-            self.priority = scheduling(self.pid)
-        self._left_idle_at = time.monotonic()
-        LOGGER.warning("planning process got %.0f%% of a core at idle priority (the machine "
-                       "is busy): normal scheduling (%s) for %g s", 100 * share,
-                       self.priority, self._idle_retry)
-
-    def _return_to_idle(self) -> None:
-        """The machine may be quiet again: idle priority once more (a task may always lower
-        its own). Starved again, the child leaves it at once, and waits twice as long."""
-        self._left_idle_at = None
-        self._idle_retry = min(2 * self._idle_retry, IDLE_RETRY_MAX_S)
-        threads: list[str] = []
-        with contextlib.suppress(OSError):
-            threads = os.listdir(f"/proc/{self.pid}/task")
-        for thread in threads:
-            with contextlib.suppress(OSError):  # a thread that ended meanwhile
-                os.sched_setscheduler(int(thread), os.SCHED_IDLE, os.sched_param(0))
-        self._starvation = CpuShare(WATCH_PERIOD_S)  # judged afresh, at idle
-        with contextlib.suppress(OSError):
-            self.priority = scheduling(self.pid)
-        LOGGER.info("planning process: back to idle priority (%s)", self.priority)

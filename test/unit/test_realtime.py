@@ -43,7 +43,8 @@ from constrained_diffusion_ros.runtime.os_scheduling import (
     request_fifo,
     scheduling,
 )
-from constrained_diffusion_ros.runtime.planning_process import PlanningProcess, _send, serve
+from constrained_diffusion_ros.runtime.planning_child import send, serve
+from constrained_diffusion_ros.runtime.planning_process import PlanningProcess
 from constrained_diffusion_ros.runtime.thread_worker import PlanningThread
 from constrained_diffusion_ros.sampling.sampler import Interrupted
 from constrained_diffusion_ros.zones import LiveZones, rectangle
@@ -195,7 +196,7 @@ def test_the_planning_child_answers_a_stopped_plan_and_plans_the_next(
     try:
         for kind, payload in (("policy", tiny_policy), ("planner", (SAFE, PUSHT_ROBOT)),
                               ("seed", 0)):
-            _send(node, kind, payload)
+            send(node, kind, payload)
         # The job and "cancel" in one write, framed as Connection.send_bytes frames a message
         # (a 4-byte big-endian length): "cancel" is there before the child reads the job.
         frames = b"".join(struct.pack("!i", len(m)) + m for m in (
@@ -206,13 +207,13 @@ def test_the_planning_child_answers_a_stopped_plan_and_plans_the_next(
         replies = []
         while len(replies) < 2 and node.poll(30):
             replies.append(pickle.loads(node.recv_bytes())[0])
-        _send(node, "job", (job, False))  # nothing behind it: planned to the end
+        send(node, "job", (job, False))  # nothing behind it: planned to the end
         assert node.poll(30)
         kind, data = pickle.loads(node.recv_bytes())
         assert replies == ["scheduling", "cancelled"] and kind == "chunk"
         assert np.isfinite(pickle.loads(data)[0]).all()
     finally:
-        _send(node, "stop", None)
+        send(node, "stop", None)
         child.join(30)
         node.close()
         torch.set_num_threads(threads)  # the child's loop set this process's
@@ -538,7 +539,7 @@ def test_the_planning_process_plans_at_idle_priority_until_it_starves(
         if idle and may_leave_idle(5):
             assert worker.priority == "idle" == scheduling(worker.pid)
             assert os.sched_getscheduler(worker.pid) == os.SCHED_IDLE
-            worker._leave_idle(0.1)  # what the watch does when the share is under the bound
+            worker.watch.leave_idle(worker.pid, 0.1)  # what the watch does when starved
         assert worker.priority == f"nice {nice}" == scheduling(worker.pid)
         for thread in threads.iterdir():
             assert os.sched_getscheduler(int(thread.name)) == os.SCHED_OTHER
@@ -561,7 +562,7 @@ def test_a_starved_planner_that_may_not_leave_idle_priority_says_so(
         while worker.priority == "starting" and time.monotonic() < deadline:
             time.sleep(0.01)
         monkeypatch.setattr(os, "sched_setscheduler", refuse)
-        worker._leave_idle(0.02)
+        worker.watch.leave_idle(worker.pid, 0.02)
         assert worker.priority == "idle (starved: could not leave it)"
     finally:
         monkeypatch.undo()

@@ -24,6 +24,7 @@ from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.runtime import planning_process as workers
+from constrained_diffusion_ros.runtime import priority_watch
 from constrained_diffusion_ros.runtime.os_scheduling import (
     CpuShare,
     may_leave_idle,
@@ -247,20 +248,20 @@ def test_a_child_that_left_idle_priority_returns_to_it_after_a_while(
     # When it starves is the watch's business (the CpuShare tests): on a busy machine the
     # child would, at once, and be sent off idle again before it is checked.
     monkeypatch.setattr(CpuShare, "starved", lambda self, now, cpu, job, stopped=False: None)
-    monkeypatch.setattr(workers, "IDLE_RETRY_S", 0.2)
+    monkeypatch.setattr(priority_watch, "IDLE_RETRY_S", 0.2)
     arrived = threading.Semaphore(0)
     worker = PlanningProcess(ConstrainedPlanner(tiny_policy, FAST, PUSHT_ROBOT),
                              lambda result: arrived.release())
     try:
         worker.submit(job(1))
         assert arrived.acquire(timeout=60) and worker.priority == "idle"
-        worker._leave_idle(0.1)  # what the watch does when the share is under the bound
+        worker.watch.leave_idle(worker.pid, 0.1)  # what the watch does when starved
         assert worker.priority.startswith("nice")
         assert until(lambda: worker.priority == "idle", 10)
         assert scheduling(worker.pid) == "idle"
         for thread in Path(f"/proc/{worker.pid}/task").iterdir():
             assert os.sched_getscheduler(int(thread.name)) == os.SCHED_IDLE
-        assert worker._idle_retry == pytest.approx(0.4)
+        assert worker.watch.idle_retry == pytest.approx(0.4)
         worker.submit(job(2))
         assert arrived.acquire(timeout=60)
     finally:

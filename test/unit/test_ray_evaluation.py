@@ -51,23 +51,25 @@ def command(*args: str) -> list[str]:
 
 
 def environment() -> dict[str, str]:
-    """This process's environment for a command: with what Ray set in it once the cluster
-    started (RAY_AUTH_MODE: a driver must present the cluster's token) and RAY_TMPDIR."""
+    """This process's environment for a command, with the module's Ray settings (`ray_temp`)."""
     return {**os.environ, "OMP_NUM_THREADS": "1"}
 
 
 @pytest.fixture(scope="module")
 def ray_temp() -> Iterator[None]:
     """Ray sessions of this module in a temporary directory removed afterwards (short: Ray's
-    socket paths must fit in 107 characters)."""
+    socket paths must fit in 107 characters), without the token Ray would otherwise write to
+    ~/.ray for a new local cluster."""
     directory = tempfile.mkdtemp(prefix="rayt", dir="/tmp")
-    before = os.environ.get("RAY_TMPDIR")
-    os.environ["RAY_TMPDIR"] = directory
+    wanted = {"RAY_TMPDIR": directory, "RAY_AUTH_MODE": "disabled"}
+    before = {name: os.environ.get(name) for name in wanted}
+    os.environ.update(wanted)
     yield
-    if before is None:
-        del os.environ["RAY_TMPDIR"]
-    else:
-        os.environ["RAY_TMPDIR"] = before
+    for name, value in before.items():
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value
     shutil.rmtree(directory, ignore_errors=True)
 
 

@@ -33,6 +33,9 @@ def parse() -> argparse.Namespace:
     parser.add_argument("--steps", type=positive_int, default=100)
     parser.add_argument("--unit", type=positive_int, default=10, help="seeds per unit")
     parser.add_argument("--workers", type=positive_int, nargs="+", default=[1, 2])
+    parser.add_argument("--repeats", type=positive_int, default=2,
+                        help="runs of each, the fastest kept (other work on the machine "
+                             "slows some)")
     return parser.parse_args()
 
 
@@ -43,8 +46,15 @@ def study(args: argparse.Namespace, ray: bool, threads: int) -> argparse.Namespa
                               ray_workers=1, ray_threads=threads)
 
 
-def timed(policy, groups, seeds, steps, namespace) -> tuple[float, float, int, list]:
-    """(wall s, the units' own compute s, units, figures) of one run of the study."""
+def timed(policy, groups, seeds, steps, namespace, repeats: int
+          ) -> tuple[float, float, int, list]:
+    """(wall s, the units' own compute s, units, figures) of the fastest of `repeats` runs of
+    the study."""
+    return min((once(policy, groups, seeds, steps, namespace) for _ in range(repeats)),
+               key=lambda result: result[0])
+
+
+def once(policy, groups, seeds, steps, namespace) -> tuple[float, float, int, list]:
     started = time.monotonic()
     cells = [cell for _, (done, _, _) in
              distributed.group_results(policy, groups, seeds, steps, namespace)
@@ -80,7 +90,7 @@ def main() -> int:
     policy = load_policy(args.model)
     print(f"{episodes} episodes ({', '.join(args.configs)} on {', '.join(args.scenarios)}, "
           f"{args.episodes} seeds, {args.steps} steps) in units of {args.unit} seeds; "
-          f"{os.cpu_count()} cores", flush=True)
+          f"{os.cpu_count()} cores; the fastest of {args.repeats} runs each", flush=True)
 
     rows, reference = [], None
     warm_here = argparse.Namespace(**{**vars(study(args, False, 1)), "unit": 1})
@@ -88,7 +98,7 @@ def main() -> int:
     for threads in sorted({1, *args.workers}):
         torch.set_num_threads(threads)
         wall, _, _, figures = timed(policy, groups, seeds, args.steps,
-                                    study(args, False, threads))
+                                    study(args, False, threads), args.repeats)
         reference = reference or figures
         same = "yes" if figures == reference else "no (other thread count, other rounding)"
         rows.append((f"here, {threads} thread(s)", wall, same, ""))
@@ -101,7 +111,8 @@ def main() -> int:
         list(distributed.group_results(policy, groups[:1], seeds[:workers], 1,
                                        argparse.Namespace(**{**vars(warm), "unit": 1})))
         start_s = time.monotonic() - started
-        wall, compute, units, figures = timed(policy, groups, seeds, args.steps, warm)
+        wall, compute, units, figures = timed(policy, groups, seeds, args.steps, warm,
+                                              args.repeats)
         ray.shutdown()
         note = f"cluster start and warm-up {start_s:.1f} s"
         if workers == 1:

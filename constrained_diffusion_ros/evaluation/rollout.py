@@ -74,8 +74,8 @@ def rollout(planner: ChunkPlanner, seeds: Sequence[int], n_steps: int = 200,
                 raise ValueError(f"{loop.zone_check_error} (step {step}): no figures from it")
             states.append(sims.step(action))
             commanded.append(action)
-            wanted.append(loop.wanted)
-            executed_chunk.append(loop.executed_id.copy())
+            wanted.append(loop.rows.wanted)
+            executed_chunk.append(loop.rows.executed_id.copy())
             coverages.append(sims.coverage())
             bar.update(1)
     stats = loop.stats

@@ -156,7 +156,7 @@ class PolicyNode(Node):
         self.loop = live_chunk_loop(
             self.planner, self.zones,
             values["torch_threads"] if values["planning_process"] else None,
-            values["planning_idle"], seed, lead=None if lead < 0 else lead,
+            values["planning_idle"], noise_seed=seed, lead=None if lead < 0 else lead,
             soft=values["prefix_soft"], rate_hz=self.rate_hz,
             wake=self.create_guard_condition(self._on_plan_ready).trigger,
             every_tick=values["replan_every_tick"],
@@ -237,7 +237,7 @@ class PolicyNode(Node):
             self.standstills.observe(
                 self.observations.pusher, self.observations.moved, self.zones.area_at(0),
                 self.robot.pusher_radius,
-                self.loop.history is not None and bool(self.loop.waiting[0]))
+                self.loop.history is not None and bool(self.loop.rows.waiting[0]))
         return observation
 
     def _send(self, setpoint: np.ndarray | None, stamp=None, publish: bool = True

@@ -108,9 +108,9 @@ class LoopStats:
     zone_reactions: int = 0  # setpoints changed at once because zones changed
 
 
-class ChunkLoop:
-    """Plans a chunk per episode (B rows) and executes `n_action_steps` of its waypoints from
-    `first_executed` on (the reference's convention).
+@dataclass(frozen=True)
+class LoopSettings:
+    """How a `ChunkLoop` schedules its plans.
 
     `handover` says what a row does while its next plan is made: "sync" holds its last
     setpoint and starts the chunk when it arrives; "async" goes on with the chunk in force, and
@@ -122,33 +122,82 @@ class ChunkLoop:
     with the waypoints that will execute before it arrives (`delay` steps, or the measured
     planning time) held fixed: a zone is planned around as soon as planning allows, not at the
     next chunk. `replan_on_zone_change`: any change of the zones asks for a plan that knows
-    them (the module's rules). `on_install` is called whenever plans were installed, whichever
-    call installed them (`observe` or `install_results`).
+    them (the module's rules). `noise_seed`: the worker is reseeded with it at every new
+    episode (None: not reseeded).
+    """
+
+    handover: str = "async_prefix"
+    lead: int | None = None
+    soft: int = 4
+    rate_hz: float = 10.0
+    noise_seed: int | None = None
+    every_tick: bool = False
+    delay: int | None = None
+    replan_on_zone_change: bool = False
+
+    def __post_init__(self) -> None:
+        if self.handover not in HANDOVERS:
+            raise ValueError(f"handover must be one of {HANDOVERS}, got {self.handover!r}")
+        if self.every_tick and self.handover == "sync":
+            raise ValueError("every_tick needs an asynchronous handover")
+
+
+@dataclass
+class RowState:
+    """What the loop keeps per row (episode) of its batch, from the episode's start: arrays of
+    B rows, declared here once."""
+
+    setpoints: np.ndarray  # (B, 2) to execute: the guard's answer
+    wanted: np.ndarray  # (B, 2) what the chunks in force ask, before the guard
+    waiting: np.ndarray  # (B,) no waypoint to execute: the last setpoint is held
+    handed_over: np.ndarray  # (B,) the setpoint is a new chunk's first
+    executed_id: np.ndarray  # (B,) the chunk executed (its install count); -1: none, held
+    planned_version: np.ndarray  # (B,) the zones' version each chunk was planned for
+    replanning: np.ndarray  # (B,) the serial of the replan on its way; 0: none
+    # Setpoints in force that a live change of the zones moved since the last asking, and
+    # where they were before it (`_refused` judges them when asking).
+    moved_by_zones: np.ndarray  # (B,)
+    before_zones_moved: np.ndarray  # (B, 2)
+
+    @classmethod
+    def start(cls, pushers: np.ndarray) -> RowState:
+        """An episode's rows, holding their pushers (B, 2) where they are."""
+        batch = len(pushers)
+        return cls(setpoints=pushers.astype(float), wanted=pushers.astype(float),
+                   waiting=np.ones(batch, dtype=bool), handed_over=np.zeros(batch, dtype=bool),
+                   executed_id=np.full(batch, -1), planned_version=np.zeros(batch, np.int64),
+                   replanning=np.zeros(batch, dtype=np.int64),
+                   moved_by_zones=np.zeros(batch, dtype=bool),
+                   before_zones_moved=np.zeros((batch, 2)))
+
+
+class ChunkLoop:
+    """Plans a chunk per episode (B rows) and executes `n_action_steps` of its waypoints from
+    `first_executed` on (the reference's convention), scheduled by its `settings`
+    (`LoopSettings`); what it keeps per row is `rows` (`RowState`, None before the first
+    observation). `on_install` is called whenever plans were installed, whichever call
+    installed them (`observe` or `install_results`).
 
     Call everything from one thread; a background worker's results wait until
     `install_results` (or the next `observe`) takes them, and `wake` is called when one arrives.
     """
 
     def __init__(self, planner: ChunkPlanner, make_worker: WorkerFactory,
-                 zones: ZoneSource | None = None, handover: str = "async_prefix",
-                 lead: int | None = None, soft: int = 4, rate_hz: float = 10.0,
-                 noise_seed: int | None = None,
-                 wake: Callable[[], None] = lambda: None, every_tick: bool = False,
-                 delay: int | None = None, replan_on_zone_change: bool = False,
+                 zones: ZoneSource | None = None, settings: LoopSettings = LoopSettings(),
+                 wake: Callable[[], None] = lambda: None,
                  on_install: Callable[[], None] = lambda: None) -> None:
-        if handover not in HANDOVERS:
-            raise ValueError(f"handover must be one of {HANDOVERS}, got {handover!r}")
         config = planner.policy_config
-        if lead is not None and not 0 <= lead <= config.n_action_steps:
-            raise ValueError(f"lead must be in [0, n_action_steps], got {lead}")
-        self.planner, self.zones, self.handover = planner, zones, handover
-        if every_tick and handover == "sync":
-            raise ValueError("every_tick needs an asynchronous handover")
-        self.fixed_lead = 0 if handover == "sync" else lead
-        self.every_tick, self.fixed_delay = every_tick, delay
-        self.replan_on_zone_change = replan_on_zone_change
-        self.soft, self.rate_hz, self.noise_seed, self.wake = soft, rate_hz, noise_seed, wake
-        self.on_install = on_install
+        if settings.lead is not None and not 0 <= settings.lead <= config.n_action_steps:
+            raise ValueError(f"lead must be in [0, n_action_steps], got {settings.lead}")
+        self.planner, self.zones, self.settings = planner, zones, settings
+        self.handover = settings.handover
+        self.fixed_lead = 0 if settings.handover == "sync" else settings.lead
+        self.every_tick, self.fixed_delay = settings.every_tick, settings.delay
+        self.replan_on_zone_change = settings.replan_on_zone_change
+        self.soft, self.rate_hz, self.noise_seed = settings.soft, settings.rate_hz, \
+            settings.noise_seed
+        self.wake, self.on_install = wake, on_install
+        self.rows: RowState | None = None
         self.n_obs_steps, self.first_executed = config.n_obs_steps, config.first_executed
         self.n_action_steps = config.n_action_steps
         self.stats = LoopStats()
@@ -181,8 +230,9 @@ class ChunkLoop:
         it has); `handover` EVERY_TICK: async_prefix with `every_tick`."""
         if handover == EVERY_TICK:
             handover, every_tick = "async_prefix", True
-        return cls(planner, SimulatedPlanning.factory(generator, delay), zones, handover,
-                   lead=delay, noise_seed=noise_seed, every_tick=every_tick, delay=delay,
+        settings = LoopSettings(handover, lead=delay, noise_seed=noise_seed,
+                                every_tick=every_tick, delay=delay)
+        return cls(planner, SimulatedPlanning.factory(generator, delay), zones, settings,
                    on_install=on_install)
 
     # -- inputs ------------------------------------------------------------------------------
@@ -191,8 +241,7 @@ class ChunkLoop:
     def observe(self, step: int, observations: np.ndarray) -> np.ndarray:
         """The observations (B, obs_dim) of control step `step` (or one, (obs_dim,)) -> the
         setpoints to execute, (B, 2) (or (2,)). An earlier step than the newest starts a new
-        episode. Also kept: `setpoints`, `wanted` (before the guard), `waiting` (rows with no
-        waypoint), `handed_over` (rows whose setpoint is a new chunk's first)."""
+        episode. What each row executes, wanted and waits for is kept in `rows`."""
         return self._checked(self._observe, step, observations)
 
     def _observe(self, step: int, observations: np.ndarray) -> np.ndarray:
@@ -212,9 +261,9 @@ class ChunkLoop:
         else:
             self._ask_due()
         self._install(self._take_results())  # a plan ready at once (a simulated delay of 0)
-        self.waiting = np.isnan(self.queue.at(step)).any(axis=-1)
-        self.stats.held_steps += int(self.waiting.sum())
-        self.stats.late_steps += int((self.waiting & self.queue.planned).sum())
+        self.rows.waiting = np.isnan(self.queue.at(step)).any(axis=-1)
+        self.stats.held_steps += int(self.rows.waiting.sum())
+        self.stats.late_steps += int((self.rows.waiting & self.queue.planned).sum())
         return self._answer(self._update())
 
     def reset(self, noise_seed: int | None = None) -> None:
@@ -234,7 +283,7 @@ class ChunkLoop:
         self.worker.use(planner)
         self.generation += 1
         if self.step is not None:
-            self.replanning[:] = 0
+            self.rows.replanning[:] = 0
             self._ask(np.arange(len(self.queue.end)), replan=True)
 
     @torch.inference_mode()
@@ -248,13 +297,14 @@ class ChunkLoop:
         return self._checked(self._zones_changed)
 
     def _zones_changed(self) -> np.ndarray | None:
-        before = self.setpoints
+        before = self.rows.setpoints
         after = self._update()
         moved = (after != before).any(axis=-1)
         if moved.any():  # whether the zones refuse where it was: judged when asking, not now
             self.stats.zone_reactions += 1
-            first = moved & ~self.held_moved
-            self.held_before[first], self.held_moved[first] = before[first], True
+            rows = self.rows
+            first = moved & ~rows.moved_by_zones
+            rows.before_zones_moved[first], rows.moved_by_zones[first] = before[first], True
         self.wake()
         return self._answer(after) if moved.any() else None
 
@@ -303,7 +353,7 @@ class ChunkLoop:
         """Whether the first row's chunk in force was planned with the zones in force."""
         if self.history is None:
             return False
-        return bool(self._zones_now()[1][0] == self.planned_version[0])
+        return bool(self._zones_now()[1][0] == self.rows.planned_version[0])
 
     def _cornered(self) -> dict[str, object]:
         """Whether the shield's last answer for the first row found it cornered by a moving
@@ -322,8 +372,8 @@ class ChunkLoop:
         waypoint: the filter changed it)."""
         stats, worker = self.stats, self.worker
         started = self.history is not None
-        return {"holding": started and bool(self.waiting[0]),  # no waypoint: the last held
-                "shielded": started and bool(np.any(self.setpoints[0] != self.wanted[0])),
+        return {"holding": started and bool(self.rows.waiting[0]),  # no waypoint: the last held
+                "shielded": started and bool(np.any(self.rows.setpoints[0] != self.rows.wanted[0])),
                 "plans": stats.plans_installed, "plans_dropped": stats.plans_dropped,
                 "plans_cancelled": worker.cancelled,
                 "waypoints_skipped": self.skipped_before + self.queue.skipped,
@@ -354,9 +404,10 @@ class ChunkLoop:
         except ZoneCheckError as error:
             self._zone_check_fault(error)
             self.zone_check_failed = True
-            self.setpoints = self.planner.robot.pusher(self.history.latest).astype(float)
-            self.wanted, self.waiting = self.setpoints.copy(), np.ones(len(self.setpoints), bool)
-            answer = self._answer(self.setpoints)
+            rows = self.rows
+            rows.setpoints = self.planner.robot.pusher(self.history.latest).astype(float)
+            rows.wanted, rows.waiting = rows.setpoints.copy(), np.ones(len(rows.setpoints), bool)
+            answer = self._answer(self.rows.setpoints)
         error = getattr(self.worker, "error", None)  # (a test's stand-in may keep none)
         if isinstance(error, ZoneCheckError) and error is not self._seen_worker_error:
             self._seen_worker_error = error
@@ -378,16 +429,7 @@ class ChunkLoop:
         self.history = ObservationHistory(observations, self.n_obs_steps)
         self.skipped_before += self.queue.skipped
         self.queue = ActionQueue(batch, self.n_action_steps)
-        self.planned_version = np.zeros(batch, dtype=np.int64)  # zones each chunk was planned for
-        self.replanning = np.zeros(batch, dtype=np.int64)  # the replan on its way (serial; 0: none)
-        self.setpoints = self.planner.robot.pusher(self.history.latest).astype(float)
-        self.wanted = self.setpoints.copy()
-        self.executed_id = np.full(batch, -1)  # the chunk (install count) executed; -1: held
-        self.handed_over = np.zeros(batch, dtype=bool)
-        self.waiting = np.ones(batch, dtype=bool)
-        # Setpoints that zones moved since the last asking, and where they were before.
-        self.held_moved = np.zeros(batch, dtype=bool)
-        self.held_before = np.zeros((batch, 2))
+        self.rows = RowState.start(self.planner.robot.pusher(self.history.latest))
 
     def _answer(self, setpoints: np.ndarray) -> np.ndarray:
         return setpoints[0] if self.single else setpoints
@@ -411,15 +453,17 @@ class ChunkLoop:
         on the rest of their chunk (or that refused their held setpoint) and no replan on its
         way."""
         planning = self._planning()
-        self.replanning[~planning] = 0  # nothing on its way: a replan that failed is not coming
+        # nothing on its way: a replan that failed is not coming
+        self.rows.replanning[~planning] = 0
         remaining = self.queue.remaining(self.step)
         area, version = self._zones_now()
         entered = np.zeros(len(remaining), dtype=bool)
-        moved = np.nonzero(self.held_moved)[0]
+        moved = np.nonzero(self.rows.moved_by_zones)[0]
         if len(moved):  # zones came onto the setpoints held before them
-            entered[moved] = self._refused(self.held_before[moved][:, None], moved, area)[:, 0]
-            self.held_moved[:] = False
-        changed = version != self.planned_version
+            before = self.rows.before_zones_moved[moved][:, None]
+            entered[moved] = self._refused(before, moved, area)[:, 0]
+            self.rows.moved_by_zones[:] = False
+        changed = version != self.rows.planned_version
         if self.replan_on_zone_change:  # any change: no need to look where the zones lie
             entered |= changed & self.queue.planned
         else:
@@ -427,7 +471,7 @@ class ChunkLoop:
             if len(check):
                 entered[check] = self.queue.rest_refused(
                     check, self.step, lambda waypoints: self._refused(waypoints, check, area))
-        entered &= self.replanning == 0
+        entered &= self.rows.replanning == 0
         ask = ((remaining <= self.lead) & ~planning) | entered
         if ask.any():
             self._ask(np.nonzero(ask)[0], replan=entered[ask])
@@ -453,7 +497,7 @@ class ChunkLoop:
         self.stats.plans_asked += 1
         if self.handover == "sync":  # the robot waits for the plan, which starts when ready
             self.queue.clear(rows)
-        self.replanning[rows[replan]] = job.serial
+        self.rows.replanning[rows[replan]] = job.serial
         self.worker.submit(job, cancel=bool(replan.any()))
 
     def _planning(self) -> np.ndarray:
@@ -501,8 +545,8 @@ class ChunkLoop:
                 self.stats.plans_dropped += len(job.rows)
                 continue
             rows = job.rows
-            mine = self.replanning[rows] == job.serial
-            self.replanning[rows[mine]] = 0
+            mine = self.rows.replanning[rows] == job.serial
+            self.rows.replanning[rows[mine]] = 0
             area, version = self._zones_now()
             # Planned before the zones in force: with replan_on_zone_change installed, guarded,
             # and `_ask_due` asks again; else dropped if it enters them, and asked for again.
@@ -512,13 +556,13 @@ class ChunkLoop:
             if stale.any():
                 self.stats.plans_dropped += int(stale.sum())
                 again = rows[stale]
-                free = self.replanning[again] == 0
+                free = self.rows.replanning[again] == 0
                 if free.any():
                     self._ask(again[free], replan=True)
             keep = ~stale
             first = self.step if self.handover == "sync" else job.step
             self.queue.install(rows[keep], chunks[keep], first, self.step)
-            self.planned_version[rows[keep]] = job.zone_version[keep]
+            self.rows.planned_version[rows[keep]] = job.zone_version[keep]
             self.stats.plans_installed += int(keep.sum())
         if self.stats.plans_installed != before:
             self.on_install()
@@ -526,13 +570,13 @@ class ChunkLoop:
     def _update(self) -> np.ndarray:
         """The setpoints of the newest step from the chunks in force (the ones held where a row
         has none), through the guard."""
-        waypoints, waiting = self.queue.at_or(self.step, self.setpoints)
+        waypoints, waiting = self.queue.at_or(self.step, self.rows.setpoints)
         chunk = np.where(waiting, -1, self.queue.installs)
-        self.handed_over = (chunk != self.executed_id) & ~waiting
-        self.executed_id = chunk
-        self.wanted = waypoints
+        self.rows.handed_over = (chunk != self.rows.executed_id) & ~waiting
+        self.rows.executed_id = chunk
+        self.rows.wanted = waypoints
         area, version = self._zones_now()
-        older = np.nonzero(version != self.planned_version)[0]
+        older = np.nonzero(version != self.rows.planned_version)[0]
         if area is not None and len(older):  # waypoints planned before these zones
             points = waypoints[older]
             refused = self._refused(points[:, None], older, area)[:, 0]
@@ -542,6 +586,6 @@ class ChunkLoop:
                 waypoints[moved] = self.planner.keep_out(area.select_rows(moved),
                                                          points[refused])
         # The guard sees the positions as the planner saw them (float32 observations).
-        self.setpoints = self.planner.guard(area, self.history.latest, waypoints, self.step)
-        return self.setpoints
+        self.rows.setpoints = self.planner.guard(area, self.history.latest, waypoints, self.step)
+        return self.rows.setpoints
 

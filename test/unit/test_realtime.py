@@ -26,11 +26,10 @@ from samples import chunk_of_rows
 from test_lockstep import CONFIG, Scripted, lockstep
 
 from constrained_diffusion_ros.planning.action_queue import ActionQueue, committed_prefix
-from constrained_diffusion_ros.planning.chunk_loop import ChunkLoop, warm_up
+from constrained_diffusion_ros.planning.chunk_loop import ChunkLoop, LoopSettings, warm_up
 from constrained_diffusion_ros.planning.config import ConstraintConfig
 from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult, plan_chunk
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
-from constrained_diffusion_ros.planning.simulated_worker import SimulatedPlanning
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.weights import save_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
@@ -309,7 +308,7 @@ def test_a_stopped_plan_that_arrives_anyway_is_dropped_without_asking_again(
         controller.zones_changed()
         controller.install_results()
         (stopped, _), (replan, cancel) = submitted
-        assert cancel and controller.replanning[0] == replan.serial
+        assert cancel and controller.rows.replanning[0] == replan.serial
         controller._on_result(PlanResult(stopped, chunk[None], 0.1))  # its stop came too late
         controller.install_results()
         assert controller.stats.plans_dropped == 1 and len(submitted) == 2
@@ -427,7 +426,7 @@ def test_a_zone_that_moves_the_held_setpoint_stops_the_plan_in_flight(
         assert controller.zones_changed() is not None  # the held setpoint moved
         controller.install_results()
         assert [cancel for _, cancel in submitted] == [True]
-        controller.replanning[:] = 0  # as if the replan had arrived
+        controller.rows.replanning[:] = 0  # as if the replan had arrived
         zones.remove(1)
         np.testing.assert_array_equal(controller.zones_changed(), held)  # back, nothing asked
         controller.install_results()
@@ -754,7 +753,7 @@ def run(executor: ChunkLoop, steps: int) -> tuple[list[np.ndarray], list[np.ndar
     actions, handovers = [], []
     for step in range(steps):
         actions.append(executor.observe(step, observations_at(step)))
-        handovers.append(executor.handed_over.copy())
+        handovers.append(executor.rows.handed_over.copy())
     return actions, handovers
 
 
@@ -801,7 +800,7 @@ def test_every_tick_plans_from_each_observation_with_the_steps_before_it_arrives
     held = prefixes[2].weights[0]  # asked at step 4, with chunk 1 (asked at 2) in force
     assert held[:CONFIG.first_executed + 2].eq(1).all() and held[CONFIG.first_executed + 2] < 1
     with pytest.raises(ValueError, match="every_tick"):
-        ChunkLoop(Scripted(), SimulatedPlanning.factory(), handover="sync", every_tick=True)
+        LoopSettings(handover="sync", every_tick=True)
 
 
 def test_zero_delay_is_the_lockstep_executor_whatever_the_handover() -> None:
@@ -907,7 +906,7 @@ def test_the_controller_installs_a_late_plan_without_the_steps_that_passed(
     try:
         assert controller.step is None  # nothing observed yet
         controller.observe(0, observation_with_pusher(100, 100))
-        held = controller.setpoints[0]  # no chunk yet: the pusher held where it is; plan asked
+        held = controller.rows.setpoints[0]  # no chunk yet: the pusher held where it is; plan asked
         np.testing.assert_allclose(held, [100, 100])
         assert started.wait(5)
         for step in (1, 2, 3):  # the plan takes three steps to come in
@@ -917,7 +916,7 @@ def test_the_controller_installs_a_late_plan_without_the_steps_that_passed(
         assert controller.stats.plans_installed == 1
         assert controller.queue.skipped == 3
         chunk = controller.queue.waypoints[0]
-        np.testing.assert_allclose(controller.setpoints[0], chunk[3])  # step 3's, not step 0's
+        np.testing.assert_allclose(controller.rows.setpoints[0], chunk[3])  # step 3's, not step 0's
     finally:
         controller.shutdown()
 
@@ -931,7 +930,7 @@ def test_a_zone_arriving_mid_chunk_gets_a_safe_setpoint_before_the_next_tick(
     try:
         controller.observe(0, observation_with_pusher(200, 200))
         installed(controller)
-        setpoint = controller.setpoints[0]
+        setpoint = controller.rows.setpoints[0]
         x, y = setpoint
         zones.upsert(1, rectangle(x - 20, y - 20, x + 20, y + 20), now=0.0)  # on the setpoint
         safe = controller.zones_changed()
@@ -941,7 +940,8 @@ def test_a_zone_arriving_mid_chunk_gets_a_safe_setpoint_before_the_next_tick(
         assert inflated.signed_distance(torch.tensor(safe[None])).item() > 0
         assert controller.stats.plans_asked == 2  # the rest of the chunk was replanned
         installed(controller)
-        assert zones.snapshot().signed_distance(torch.tensor(controller.setpoints[0][None])) > 0
+        held = torch.tensor(controller.rows.setpoints[0][None])
+        assert zones.snapshot().signed_distance(held) > 0
         zones.upsert(2, rectangle(400, 400, 450, 450), now=0.0)  # far away: nothing to do
         assert controller.zones_changed() is None
     finally:
@@ -993,7 +993,8 @@ def test_a_new_episode_stops_the_plan_in_flight_and_never_installs_one_from_befo
         controller.observe(5, observation_with_pusher(100, 100))
         assert started.wait(5)
         controller.observe(0, observation_with_pusher(300, 300))  # the sim was reset
-        np.testing.assert_allclose(controller.setpoints[0], [300, 300])  # held, none from before
+        # held, none from before
+        np.testing.assert_allclose(controller.rows.setpoints[0], [300, 300])
         release.set()
         installed(controller)
         stats = controller.stats

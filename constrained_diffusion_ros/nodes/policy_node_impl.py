@@ -26,7 +26,7 @@ from constrained_diffusion_ros.nodes.policy_parameters import (
 from constrained_diffusion_ros.nodes.policy_status import ReactionTimes, StatusReporter
 from constrained_diffusion_ros.nodes.setpoint_output import SetpointOutput
 from constrained_diffusion_ros.nodes.zone_ingest import ZoneIngest
-from constrained_diffusion_ros.planning.chunk_loop import ChunkLoop, warm_up
+from constrained_diffusion_ros.planning.chunk_loop import ChunkLoop
 from constrained_diffusion_ros.planning.config import load_configurations, weakens
 from constrained_diffusion_ros.planning.liveness import StandstillCounts
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
@@ -34,7 +34,7 @@ from constrained_diffusion_ros.planning.sound_setpoints import SoundSetpoints
 from constrained_diffusion_ros.policy.runtime import use_runtime
 from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.runtime.clock import ControlClock
-from constrained_diffusion_ros.runtime.live_loop import live_chunk_loop
+from constrained_diffusion_ros.runtime.live_loop import live_chunk_loop, warm_up
 from constrained_diffusion_ros.runtime.os_scheduling import request_fifo
 from constrained_diffusion_ros.zones.grid import MaskCaps
 from msg_schemas import NAMESPACE, TOPICS, qos_profile

@@ -47,11 +47,9 @@ from constrained_diffusion_ros.planning.action_queue import (
     committed_prefix,
 )
 from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult, PlanWorker
-from constrained_diffusion_ros.planning.planners import ChunkPlanner, ConstrainedPlanner
+from constrained_diffusion_ros.planning.planners import ChunkPlanner
 from constrained_diffusion_ros.planning.simulated_worker import SimulatedPlanning
 from constrained_diffusion_ros.zones.area import RestrictedArea
-from constrained_diffusion_ros.zones.geometry import leaves_no_room
-from constrained_diffusion_ros.zones.live import LiveZones
 from constrained_diffusion_ros.zones.plugins import ZoneCheckError
 
 LOGGER = logging.getLogger(__name__)
@@ -73,25 +71,6 @@ class ZoneSource(Protocol):
     def version_at(self, step: int) -> int | np.ndarray:
         """Equal versions (one, or one per episode) mean equal zones."""
         ...
-
-
-def warm_up(planner: ConstrainedPlanner) -> None:
-    """Runs the zone reaction's computing once on a scratch zone: a new zone is then not the
-    first to pay for lazy imports and first calls, time the node's executor holds the
-    interpreter while the clock waits for it. Leaves the planner as it found it (its shield
-    reset)."""
-    robot = planner.robot
-    x_min, y_min, x_max, y_max = robot.workspace
-    centre, half = np.array([(x_min + x_max) / 2, (y_min + y_max) / 2]), (x_max - x_min) / 8
-    scratch = LiveZones(workspace=robot.workspace)
-    scratch.apply([("warm_up", [tuple(centre + half * np.array(corner))
-                                for corner in ((-1, -1), (1, -1), (1, 1), (-1, 1))])], 0.0)
-    area, point = scratch.area_at(0), centre[None]
-    leaves_no_room(scratch.snapshot().geometry, robot.workspace, robot.pusher_radius)
-    planner.violates(torch.from_numpy(point[None]), area, np.array([0]))
-    observation = np.zeros((1, planner.policy_config.obs_dim))
-    planner.guard(area, observation, planner.keep_out(area, point), 0)
-    planner.reset()
 
 
 @dataclass

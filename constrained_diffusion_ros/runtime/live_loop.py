@@ -1,17 +1,22 @@
 """The chunk loop on the wall clock, as the policy node runs it: plans made in the background,
 in a supervised child process (`planning_process`) or a thread of this process
 (`thread_worker`). The loop's rules are the method's (`planning.chunk_loop`); what makes it
-live is here."""
+live is here, with `warm_up`, which spares the first live zone the first calls' cost."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
+
+import numpy as np
+import torch
 
 from constrained_diffusion_ros.planning.chunk_loop import ChunkLoop, LoopSettings, ZoneSource
 from constrained_diffusion_ros.planning.plan_jobs import PlanResult, PlanWorker
 from constrained_diffusion_ros.planning.planners import ChunkPlanner, ConstrainedPlanner
 from constrained_diffusion_ros.runtime.planning_process import PlanningProcess
 from constrained_diffusion_ros.runtime.thread_worker import PlanningThread
+from constrained_diffusion_ros.zones.geometry import leaves_no_room
+from constrained_diffusion_ros.zones.live import LiveZones
 
 
 def live_chunk_loop(planner: ConstrainedPlanner, zones: ZoneSource,
@@ -32,3 +37,22 @@ def live_chunk_loop(planner: ConstrainedPlanner, zones: ZoneSource,
             return PlanningThread(planner, on_result, seed)
         return PlanningProcess(planner, on_result, seed, process_threads, idle=idle)
     return ChunkLoop(planner, make_worker, zones, chosen, wake=wake, on_install=on_install)
+
+
+def warm_up(planner: ConstrainedPlanner) -> None:
+    """Runs the zone reaction's computing once on a scratch zone: a new zone is then not the
+    first to pay for lazy imports and first calls, time the node's executor holds the
+    interpreter while the clock waits for it. Leaves the planner as it found it (its shield
+    reset)."""
+    robot = planner.robot
+    x_min, y_min, x_max, y_max = robot.workspace
+    centre, half = np.array([(x_min + x_max) / 2, (y_min + y_max) / 2]), (x_max - x_min) / 8
+    scratch = LiveZones(workspace=robot.workspace)
+    scratch.apply([("warm_up", [tuple(centre + half * np.array(corner))
+                                for corner in ((-1, -1), (1, -1), (1, 1), (-1, 1))])], 0.0)
+    area, point = scratch.area_at(0), centre[None]
+    leaves_no_room(scratch.snapshot().geometry, robot.workspace, robot.pusher_radius)
+    planner.violates(torch.from_numpy(point[None]), area, np.array([0]))
+    observation = np.zeros((1, planner.policy_config.obs_dim))
+    planner.guard(area, observation, planner.keep_out(area, point), 0)
+    planner.reset()

@@ -182,7 +182,7 @@ import sys
 import numpy as np
 import constrained_diffusion_ros.nodes.policy_node_impl  # what the node imports
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
-from constrained_diffusion_ros.planning.chunk_loop import warm_up
+from constrained_diffusion_ros.runtime.live_loop import warm_up
 from constrained_diffusion_ros.planning.config import load_configurations
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.policy.weights import load_policy

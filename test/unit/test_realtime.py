@@ -26,7 +26,7 @@ from samples import chunk_of_rows
 from test_lockstep import CONFIG, Scripted, lockstep
 
 from constrained_diffusion_ros.planning.action_queue import ActionQueue, committed_prefix
-from constrained_diffusion_ros.planning.chunk_loop import ChunkLoop, LoopSettings, warm_up
+from constrained_diffusion_ros.planning.chunk_loop import ChunkLoop, LoopSettings
 from constrained_diffusion_ros.planning.config import ConstraintConfig
 from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult, plan_chunk
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
@@ -34,7 +34,7 @@ from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.weights import save_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.runtime.clock import ControlClock
-from constrained_diffusion_ros.runtime.live_loop import live_chunk_loop
+from constrained_diffusion_ros.runtime.live_loop import live_chunk_loop, warm_up
 from constrained_diffusion_ros.runtime.os_scheduling import (
     STARVED_SHARE,
     CpuShare,

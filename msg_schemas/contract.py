@@ -94,6 +94,10 @@ SERVICES: dict[str, Endpoint] = {e.key: e for e in (
              "restarts too)"),
     Endpoint("reset", "std_srvs/srv/Trigger", "services", "sim_node", (), "",
              "Reset the scene to the sim node's `seed` parameter (set it first)"),
+    Endpoint("policy_node/change_state", "lifecycle_msgs/srv/ChangeState", "services",
+             "policy_node", (), "",
+             "Lifecycle transitions (configure, activate, deactivate, cleanup, shutdown), as "
+             "nav2's lifecycle manager asks them; get_state beside it"),
 )}
 
 

@@ -127,6 +127,7 @@ def run_trial(args: argparse.Namespace) -> dict:
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PointStamped, PoseStamped
+    from lifecycle_msgs.srv import ChangeState
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
     from std_srvs.srv import Trigger
@@ -202,6 +203,7 @@ def run_trial(args: argparse.Namespace) -> dict:
     node.create_subscription(DiagnosticArray, TOPICS["diagnostics"].name, diagnosed,
                              qos_profile(TOPICS["diagnostics"], "recorder"))
     reset = node.create_client(Trigger, SERVICES["reset"].name)
+    lifecycle = node.create_client(ChangeState, SERVICES["change_state"].name)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
 
@@ -225,11 +227,25 @@ def run_trial(args: argparse.Namespace) -> dict:
         _, policy_log = children.start("policy_node", threads=POLICY_THREADS,
                                        torch_threads=POLICY_THREADS, model=args.model,
                                        configuration=args.configuration,
-                                       configurations_file=args.configurations_file, **plug_in)
+                                       configurations_file=args.configurations_file,
+                                       autostart=False, **plug_in)
 
         def wait_for(condition, what: str) -> None:
             spin_until(executor, condition, deadline=deadline, period_s=0.05,
                        failed=children.failed, what=what)
+
+        def transition(label: str) -> None:
+            """The policy node through a lifecycle transition, as a lifecycle manager asks."""
+            wait_for(lifecycle.service_is_ready, "the policy node's lifecycle services")
+            request = ChangeState.Request()
+            request.transition.label = label
+            answer = lifecycle.call_async(request)
+            wait_for(answer.done, f"the policy node to {label}")
+            if not answer.result().success:
+                raise ValueError(f"the policy node could not {label} (see {policy_log})")
+
+        transition("configure")  # loads the policy and subscribes
+        transition("activate")  # sends setpoints from its first answer on
 
         def subscribed(topic: str) -> bool:
             """Every node the contract names as a subscriber of `topic` (but the optional

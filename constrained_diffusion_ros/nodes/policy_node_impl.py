@@ -14,7 +14,8 @@ import torch
 from nav_msgs.msg import Path as PathMsg
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
-from rclpy.node import Node
+from rclpy.lifecycle import Node as LifecycleNode
+from rclpy.lifecycle import State, TransitionCallbackReturn
 
 from constrained_diffusion_ros.nodes.observation_input import ObservationInput
 from constrained_diffusion_ros.nodes.policy_parameters import (
@@ -46,9 +47,20 @@ from msg_schemas.text import one_line
 STATUS_PERIOD_S = 0.5  # realtime: status this often
 
 
-class PolicyNode(Node):
+# What a node is made of, and how each is destroyed: what configure built goes at cleanup.
+ENTITIES = {"publishers": "destroy_publisher", "subscriptions": "destroy_subscription",
+            "timers": "destroy_timer", "guards": "destroy_guard_condition",
+            "services": "destroy_service", "clients": "destroy_client"}
+
+
+class PolicyNode(LifecycleNode):
+    """The policy as a managed (lifecycle) node, the convention nav2's nodes follow:
+    configure loads the policy, starts the planning process and subscribes; activate sends
+    setpoints; deactivate holds the last safe setpoint and sends none (zones are still taken);
+    cleanup and shutdown free what configure built. With `autostart` it goes through configure
+    and activate at start. `/diagnostics` gives its state (`lifecycle`) in every state."""
+
     def __init__(self) -> None:
-        startup = StartupPhases()
         super().__init__("policy_node", namespace=NAMESPACE)
         # The package's Python log lines (the planning process's) go to /rosout too.
         package_log = logging.getLogger("constrained_diffusion_ros")
@@ -57,6 +69,77 @@ class PolicyNode(Node):
         self.values = values = declare(self, PARAMETERS)
         self.mode, self.rate_hz = values["mode"], values["rate_hz"]
         self.realtime = self.mode == "realtime"
+        self.status = StatusReporter(self)  # in every state
+        self.lifecycle = "unconfigured"
+        self.loop: ChunkLoop | None = None
+        self.output: SetpointOutput | None = None
+        self._built: set[tuple[str, object]] = set()  # what configure added to the node
+        self._parameters_callback = None
+        self._failure: BaseException | None = None  # why configure failed, for autostart
+        if not values["autostart"]:
+            self._say_state()
+            return
+        for transition in (self.trigger_configure, self.trigger_activate):
+            if transition() != TransitionCallbackReturn.SUCCESS:
+                raise self._failure or RuntimeError("the policy node could not activate")
+
+    # -- lifecycle ----------------------------------------------------------------------------
+
+    def on_configure(self, state: State) -> TransitionCallbackReturn:
+        before = self._entities()
+        try:
+            self._configure()
+        except Exception as error:  # a bad parameter, file or plug-in: nothing is kept
+            self._failure = error
+            self._built = self._entities() - before
+            self._free()
+            if not self.values["autostart"]:  # (with it, the command says it and exits 2)
+                self.get_logger().error(f"configure failed: {one_line(error)}")
+            return TransitionCallbackReturn.FAILURE
+        self._built = self._entities() - before
+        return self._now("inactive")
+
+    def on_activate(self, state: State) -> TransitionCallbackReturn:
+        self.output.pause(False)
+        return self._now("active")
+
+    def on_deactivate(self, state: State) -> TransitionCallbackReturn:
+        self.output.pause()  # the setpoint in force is held, and sent again on activate
+        return self._now("inactive")
+
+    def on_cleanup(self, state: State) -> TransitionCallbackReturn:
+        self._free()
+        return self._now("unconfigured")
+
+    def on_shutdown(self, state: State) -> TransitionCallbackReturn:
+        self._free()
+        return self._now("finalized")
+
+    def on_error(self, state: State) -> TransitionCallbackReturn:
+        self._free()
+        return self._now("unconfigured")
+
+    def _now(self, lifecycle: str) -> TransitionCallbackReturn:
+        self.lifecycle = lifecycle
+        self._say_state()
+        return TransitionCallbackReturn.SUCCESS
+
+    def _say_state(self) -> None:
+        """The state on /diagnostics at once (with the counters once configured)."""
+        if self.loop is not None:
+            self._publish_status(self.loop.stats.last_plan_ms)
+        else:
+            self.status.publish({"lifecycle": self.lifecycle, "mode": self.mode})
+
+    def _entities(self) -> set[tuple[str, object]]:
+        return {(kind, entity) for kind in ENTITIES for entity in getattr(self, kind)}
+
+    def _configure(self) -> None:
+        startup = StartupPhases()
+        # Settable parameters as they are now: they may have been set while unconfigured.
+        self.values.update({param.name: self.get_parameter(param.name).value
+                            for param in PARAMETERS if not param.read_only})
+        values = self.values
         torch.set_num_threads(values["torch_threads"])
         if self.realtime:  # the clock thread waits at most 0.2 ms for another's GIL
             sys.setswitchinterval(0.0002)
@@ -71,21 +154,20 @@ class PolicyNode(Node):
         self.configurations = load_configurations(values["configurations_file"])
         self.zones = live_zones(values, self.robot.workspace, self.robot.reaction_s)
         self.generator = torch.Generator().manual_seed(values["noise_seed"])
-        self.loop: ChunkLoop | None = None
         self.configuration_changes = 0
         self.changes_refused = 0  # run-time parameter changes refused for weakening the filter
         self.runs_restarted = 0  # realtime: observations whose stamp went back (a new run)
         self.zone_updates_within_reach = 0  # moving zones' updates left to the next observation
         self._use_configuration(values["configuration"])
         startup.mark("planner and its worker")
-        self.add_on_set_parameters_callback(self._on_parameters)
+        self._parameters_callback = self.add_on_set_parameters_callback(self._on_parameters)
 
         self.sound = SoundSetpoints(self.robot, self.zones)
         self.output = SetpointOutput(self, self.sound,
                                      values["executor_watchdog_s"] if self.realtime else 0.0)
+        self.output.pause()  # until activated
         self.plan_pub = self.create_publisher(PathMsg, TOPICS["plan"].name,
                                               qos_profile(TOPICS["plan"], "publisher"))
-        self.status = StatusReporter(self)
         log_matches(self, [self.output.publisher])  # who gets the first setpoint
         # Zones first: when a zone and an observation are ready together, the zone is taken first.
         self.zone_ingest = ZoneIngest(
@@ -99,6 +181,7 @@ class PolicyNode(Node):
         self.standstills = StandstillCounts()  # the pusher parked at a zone's edge
         self.reaction = ReactionTimes()
         self.executor_realtime: bool | None = None  # asked for on the executor's own thread
+        self.clock: ControlClock | None = None
         if self.realtime:
             # What start-up built (policy, torch, rclpy) lives as long as the node: out of the
             # collector's sight, so a full collection does not hold the GIL to scan it all.
@@ -120,19 +203,34 @@ class PolicyNode(Node):
             f"{self.mode} policy from {values['model']}, configuration "
             f"{self.config.name!r}, network on {self.runtime}; start-up: {startup.text()}")
 
+    def _free(self) -> None:
+        """What configure built, stopped and destroyed (no setpoint after it starts)."""
+        if self.output is not None:
+            self.output.halt()
+        clock, ingest = getattr(self, "clock", None), getattr(self, "zone_ingest", None)
+        if clock is not None:
+            clock.shutdown()
+        if ingest is not None:
+            ingest.shutdown()
+        if self.loop is not None:
+            self.loop.shutdown()
+        for kind, entity in self._built:
+            getattr(self, ENTITIES[kind])(entity)
+        if self._parameters_callback is not None:
+            self.remove_on_set_parameters_callback(self._parameters_callback)
+        self._built, self._parameters_callback = set(), None
+        self.loop = self.output = self.clock = self.zone_ingest = None
+
     def fail_safe(self, reason: str) -> None:
         """The executor died: no setpoint after this, ERROR said (spin_node then exits)."""
-        self.output.halt()
-        if self.realtime:
+        if self.output is not None:
+            self.output.halt()
+        if getattr(self, "clock", None) is not None:
             self.clock.shutdown(timeout=0.0)
         self.status.publish_failure(f"stopped commanding the robot: {one_line(reason)}")
 
     def destroy_node(self) -> None:
-        self.output.halt()  # no setpoint while the rest shuts down
-        if self.realtime:
-            self.clock.shutdown()
-        self.zone_ingest.shutdown()
-        self.loop.shutdown()
+        self._free()  # no setpoint while the rest shuts down
         super().destroy_node()
 
     def _use_configuration(self, name: str) -> None:
@@ -284,7 +382,8 @@ class PolicyNode(Node):
         self._publish_status(self.loop.stats.last_plan_ms)
 
     def _publish_status(self, planning_ms: float) -> None:
-        values = {"configuration": self.config.name, "guarantee": self.config.guarantee,
+        values = {"lifecycle": self.lifecycle,
+                  "configuration": self.config.name, "guarantee": self.config.guarantee,
                   "configuration_changes": self.configuration_changes,
                   "changes_refused": self.changes_refused,
                   "runs_restarted": self.runs_restarted, "mode": self.mode,

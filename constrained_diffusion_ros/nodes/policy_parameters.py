@@ -50,6 +50,9 @@ PARAMETERS = (
           low=0),
     Param("zone_lifetime", 0.0, "s; a zone not re-published within it expires; 0: never",
           low=0.0),
+    Param("autostart", True, "configure and activate at start, as nav2's lifecycle manager "
+          "does with autostart; false: the node waits, unconfigured, for its lifecycle services "
+          "(change_state: configure, then activate)", read_only=True),
     Param("mode", "lockstep", "lockstep: one setpoint per observation, planned in the "
           "callback; realtime: one per tick of rate_hz, planned in the background",
           read_only=True, choices=MODES),

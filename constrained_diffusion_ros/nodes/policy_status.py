@@ -119,6 +119,9 @@ class StatusReporter:
                             f"with no waypoint)")
         if problems:
             return DiagnosticStatus.WARN, "; ".join(problems)
+        lifecycle = values.get("lifecycle", "active")
+        if lifecycle != "active":  # a managed node's own choice: said, not a fault
+            return DiagnosticStatus.OK, f"{lifecycle}: sends no setpoints"
         return DiagnosticStatus.OK, "running"
 
 

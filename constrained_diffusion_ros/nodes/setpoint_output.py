@@ -39,6 +39,7 @@ class SetpointOutput:
         self.watchdog_s, self.alive_at = watchdog_s, time.monotonic()
         self.withheld = 0  # clock ticks not sent: the executor had stalled
         self.halted = False
+        self.paused = False  # inactive (a lifecycle node deactivated): nothing is published
         self._lock = threading.Lock()
 
     def beat(self) -> None:
@@ -49,6 +50,12 @@ class SetpointOutput:
         """No setpoint goes out after this returns, from any thread."""
         with self._lock:
             self.halted = True
+
+    def pause(self, paused: bool = True) -> None:
+        """Nothing published while paused (the setpoint in force is kept, and sent again once
+        it resumes); from any thread, as `halt`."""
+        with self._lock:
+            self.paused = paused
 
     def send(self, setpoint: np.ndarray | None, stamp, pusher: np.ndarray | None,
              publish: bool = True) -> float | None:
@@ -67,7 +74,7 @@ class SetpointOutput:
         sent = None
         with self._lock:  # a setpoint replaced is never sent after it
             self.in_force = message
-            if publish and not self.halted:
+            if publish and not (self.halted or self.paused):
                 self.publisher.publish(message)
                 sent = time.monotonic()
         self.violations += self.sound.inside_zone(setpoint)
@@ -87,7 +94,7 @@ class SetpointOutput:
         """The setpoint in force again (the clock's tick; a lockstep answer that was lost),
         if there is one; nothing to wait on but the short lock around sending."""
         with self._lock:
-            if self.in_force is None or self.halted:
+            if self.in_force is None or self.halted or self.paused:
                 return
             if self.watchdog_s and time.monotonic() - self.alive_at > self.watchdog_s:
                 self.withheld += 1

@@ -35,7 +35,7 @@ from constrained_diffusion_ros.planning.sound_setpoints import SoundSetpoints
 from constrained_diffusion_ros.policy.runtime import use_runtime
 from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.runtime.clock import ControlClock
-from constrained_diffusion_ros.runtime.live_loop import live_chunk_loop, warm_up
+from constrained_diffusion_ros.runtime.live_loop import live_chunk_loop, loop_status, warm_up
 from constrained_diffusion_ros.runtime.os_scheduling import request_fifo
 from constrained_diffusion_ros.zones.grid import MaskCaps
 from msg_schemas import NAMESPACE, TOPICS, qos_profile
@@ -393,7 +393,7 @@ class PolicyNode(LifecycleNode):
                   "plans": self.loop.stats.planner_calls, "planning_ms": f"{planning_ms:.1f}",
                   **self.reaction.status(), "zones": len(self.zones), **self.zone_ingest.status()}
         if self.realtime:
-            values.update(self.loop.status(), **self.clock.status(),
+            values.update(loop_status(self.loop), **self.clock.status(),
                           executor_realtime=self.executor_realtime)
             values["planning_error"] = one_line(values["planning_error"] or "")
         values["zone_ids"] = ",".join(str(i) for i in self.zones.ids)

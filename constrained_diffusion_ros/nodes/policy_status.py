@@ -14,7 +14,7 @@ from std_msgs.msg import Header
 
 from msg_schemas import TOPICS, qos_profile
 
-# The chunk loop's word on a plug-in zone check (`ChunkLoop.status`), in every mode.
+# The chunk loop's word on a plug-in zone check (`loop_status`), in every mode.
 ZONE_CHECK_KEYS = ("zone_check_errors", "zone_check_failed", "zone_check_error", "cornered",
                    "cornered_steps")
 # Their rise since the last report sets the diagnostic level.
@@ -54,7 +54,11 @@ class StatusReporter:
         """The chunk loop's zone-check keys: a node that leaves the loop's status out of its
         values (lockstep) still says when a plug-in check fails and stops the pusher."""
         loop = getattr(self.node, "loop", None)
-        status = loop.status() if loop is not None else {}
+        if loop is None:  # (the view node reports with this class too, without torch)
+            return {}
+        from constrained_diffusion_ros.runtime.live_loop import loop_status
+
+        status = loop_status(loop)
         return {key: status[key] for key in ZONE_CHECK_KEYS if key in status}
 
     def health(self, values: dict) -> tuple[bytes, str]:

@@ -334,39 +334,6 @@ class ChunkLoop:
             return False
         return bool(self._zones_now()[1][0] == self.rows.planned_version[0])
 
-    def _cornered(self) -> dict[str, object]:
-        """Whether the shield's last answer for the first row found it cornered by a moving
-        zone (no free space to retreat into), and how often it was so far."""
-        shield = getattr(self.planner, "shield", None)
-        if shield is None:
-            return {}
-        return {"cornered": bool(shield.cornered[:1].any()),
-                "cornered_steps": shield.cornered_steps}
-
-    def status(self) -> dict[str, object]:
-        """The loop's and its worker's counters, for diagnostics (`planning_error`: the
-        worker's last fault, or None; `zone_check_error`: a plug-in zone check's last fault,
-        or "", `zone_check_failed` while it stops the pushers), and the first row's state:
-        `holding` its last setpoint (no waypoint), `shielded` (the setpoint is not the
-        waypoint: the filter changed it)."""
-        stats, worker = self.stats, self.worker
-        started = self.history is not None
-        return {"holding": started and bool(self.rows.waiting[0]),  # no waypoint: the last held
-                "shielded": started and bool(np.any(self.rows.setpoints[0] != self.rows.wanted[0])),
-                "plans": stats.plans_installed, "plans_dropped": stats.plans_dropped,
-                "plans_cancelled": worker.cancelled,
-                "waypoints_skipped": self.skipped_before + self.queue.skipped,
-                "held_steps": stats.held_steps, "late_steps": stats.late_steps,
-                "zone_reactions": stats.zone_reactions,
-                "lead": self.lead, "planning_priority": worker.priority,
-                "planning_errors": worker.errors, "planning_failed": worker.failed,
-                "planning_restarts": worker.restarts, "planning_error": worker.error,
-                "zone_check_errors": self.zone_check_errors,
-                **self._cornered(),
-                "zone_check_failed": self.zone_check_failed or (
-                    worker.failed and isinstance(worker.error, ZoneCheckError)),
-                "zone_check_error": str(self.zone_check_error or "")}
-
     def shutdown(self) -> None:
         self.worker.shutdown()
 

@@ -1,7 +1,8 @@
 """The chunk loop on the wall clock, as the policy node runs it: plans made in the background,
 in a supervised child process (`planning_process`) or a thread of this process
 (`thread_worker`). The loop's rules are the method's (`planning.chunk_loop`); what makes it
-live is here, with `warm_up`, which spares the first live zone the first calls' cost."""
+live is here, with `warm_up`, which spares the first live zone the first calls' cost, and
+`loop_status`, the loop's and its worker's counters for the node's diagnostics."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from constrained_diffusion_ros.runtime.planning_process import PlanningProcess
 from constrained_diffusion_ros.runtime.thread_worker import PlanningThread
 from constrained_diffusion_ros.zones.geometry import leaves_no_room
 from constrained_diffusion_ros.zones.live import LiveZones
+from constrained_diffusion_ros.zones.plugins import ZoneCheckError
 
 
 def live_chunk_loop(planner: ConstrainedPlanner, zones: ZoneSource,
@@ -56,3 +58,40 @@ def warm_up(planner: ConstrainedPlanner) -> None:
     observation = np.zeros((1, planner.policy_config.obs_dim))
     planner.guard(area, observation, planner.keep_out(area, point), 0)
     planner.reset()
+
+
+def loop_status(loop: ChunkLoop) -> dict[str, object]:
+    """The loop's and its worker's counters for the node's diagnostics (`planning_error`: the
+    worker's last fault, or None; `zone_check_error`: a plug-in zone check's last fault, or
+    "", `zone_check_failed` while it stops the pushers), and the first row's state:
+    `holding` its last setpoint (no waypoint), `shielded` (the setpoint is not the waypoint:
+    the filter changed it), `cornered` by a moving zone. Read before the first observation
+    too (the node reports on a timer)."""
+    stats, worker = loop.stats, loop.worker
+    started = loop.history is not None
+    return {"holding": started and bool(loop.rows.waiting[0]),  # no waypoint: the last held
+            "shielded": started and bool(np.any(loop.rows.setpoints[0]
+                                                != loop.rows.wanted[0])),
+            "plans": stats.plans_installed, "plans_dropped": stats.plans_dropped,
+            "plans_cancelled": worker.cancelled,
+            "waypoints_skipped": loop.skipped_before + loop.queue.skipped,
+            "held_steps": stats.held_steps, "late_steps": stats.late_steps,
+            "zone_reactions": stats.zone_reactions,
+            "lead": loop.lead, "planning_priority": worker.priority,
+            "planning_errors": worker.errors, "planning_failed": worker.failed,
+            "planning_restarts": worker.restarts, "planning_error": worker.error,
+            "zone_check_errors": loop.zone_check_errors,
+            **_cornered(loop),
+            "zone_check_failed": loop.zone_check_failed or (
+                worker.failed and isinstance(worker.error, ZoneCheckError)),
+            "zone_check_error": str(loop.zone_check_error or "")}
+
+
+def _cornered(loop: ChunkLoop) -> dict[str, object]:
+    """Whether the shield's last answer for the first row found it cornered by a moving
+    zone (no free space to retreat into), and how often it was so far."""
+    shield = getattr(loop.planner, "shield", None)
+    if shield is None:
+        return {}
+    return {"cornered": bool(shield.cornered[:1].any()),
+            "cornered_steps": shield.cornered_steps}

@@ -34,7 +34,7 @@ from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.weights import save_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.runtime.clock import ControlClock
-from constrained_diffusion_ros.runtime.live_loop import live_chunk_loop, warm_up
+from constrained_diffusion_ros.runtime.live_loop import live_chunk_loop, loop_status, warm_up
 from constrained_diffusion_ros.runtime.os_scheduling import (
     STARVED_SHARE,
     CpuShare,
@@ -690,13 +690,13 @@ def test_a_zone_check_that_turns_nan_stops_the_pushers_and_is_said_once(
                                torch.Generator().manual_seed(0), noise_seed=0)
     observation = np.full(CONFIG.obs_dim, 100.0, dtype=np.float32)  # the pusher at (100, 100)
     moving = [loop.observe(step, observation) for step in range(3)]
-    assert not loop.status()["zone_check_failed"] and np.isfinite(moving).all()
+    assert not loop_status(loop)["zone_check_failed"] and np.isfinite(moving).all()
     assert any((setpoint != 100.0).any() for setpoint in moving)
     area.plugin.after = area.plugin.calls  # NaN from the next query on
     with caplog.at_level(logging.ERROR, logger="constrained_diffusion_ros.planning.chunk_loop"):
         stopped = [loop.observe(step, observation) for step in range(3, 13)]
     assert np.array_equal(stopped, np.full((10, 2), 100.0))
-    status = loop.status()
+    status = loop_status(loop)
     assert status["zone_check_failed"] and status["holding"]
     assert status["zone_check_errors"] == 10
     assert status["zone_check_error"].startswith(
@@ -705,12 +705,12 @@ def test_a_zone_check_that_turns_nan_stops_the_pushers_and_is_said_once(
     assert len(said) == 1 and said[0].startswith(status["zone_check_error"][:60]), said
     area.plugin.after = math.inf  # it answers again
     loop.observe(13, observation)
-    status = loop.status()
+    status = loop_status(loop)
     assert not status["zone_check_failed"] and status["zone_check_errors"] == 10
     loop.worker.error = ZoneCheckError(f"zone check {TURNS_NAN_SPEC!r}: contains failed")
     loop.observe(14, observation)
-    assert loop.status()["zone_check_errors"] == 11
-    assert loop.status()["zone_check_error"].endswith("contains failed")
+    assert loop_status(loop)["zone_check_errors"] == 11
+    assert loop_status(loop)["zone_check_error"].endswith("contains failed")
 
 
 def test_a_rollout_whose_zone_check_fails_in_use_stops_in_one_line(
@@ -864,12 +864,12 @@ def test_the_status_reads_before_the_first_observation_and_across_episodes(
     """The node reports on a timer, which may come before any observation."""
     controller = live(ConstrainedPlanner(tiny_policy, SAFE, PUSHT_ROBOT), LiveZones(), lead=1)
     try:
-        status = controller.status()
+        status = loop_status(controller)
         assert (status["plans"], status["held_steps"], status["waypoints_skipped"]) == (0, 0, 0)
         controller.observe(3, observation_with_pusher(100, 100))
         installed(controller)
         controller.observe(0, observation_with_pusher(100, 100))  # a new episode
-        assert controller.status()["plans"] >= 1
+        assert loop_status(controller)["plans"] >= 1
     finally:
         controller.shutdown()
 

@@ -106,6 +106,10 @@ def run(args: argparse.Namespace) -> int:
     groups = [distributed.Group([known_configs[name]], [scenarios], delay, handover)
               for name, delay, handover in runs]
     done: dict[int, list[dict]] = {}  # run index -> its rows, written in the runs' order
+
+    def collected() -> list[dict]:
+        return kept + [row for i in sorted(done) for row in done[i]]
+
     with closing(distributed.group_results(policy, groups, seeds, args.steps, args)) as results:
         for index, (cells, log, first_rows) in results:
             name, delay, handover = runs[index]
@@ -122,11 +126,10 @@ def run(args: argparse.Namespace) -> int:
                     "s": cell.s, "r": cell.r, "r_body": cell.r_body,
                     "jump_at_handover_px": jump, "step_within_chunk_px": within,
                     "episodes": len(seeds)})
-            rows = kept + [row for i in sorted(done) for row in done[i]]
+            rows = collected()
             (output / "latency.json").write_text(json.dumps(rows, indent=1) + "\n")  # as it goes
             (output / "latency.md").write_text(markdown(rows, args))
-    rows = kept + [row for i in sorted(done) for row in done[i]]
-    print(markdown(rows, args))
+    print(markdown(collected(), args))
     return 0
 
 

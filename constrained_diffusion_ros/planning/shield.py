@@ -296,9 +296,9 @@ class PusherShield:
             step = (goal - start).norm(dim=-1).clamp_min(1.0)
             around = goal[:, None] + step[:, None, None] * self.ring[None]
             out = area.project_out(goal.float(), 2 * self.margin).double()[:, None]
-            brakes, retreats = self._brakes(p, v, start), self._retreats(area, p, goal)
-            ways_out = torch.cat([candidates, out, brakes, *retreats], dim=1)
-            candidates = torch.cat([candidates, out, around, brakes, *retreats], dim=1)
+            ring = slice(candidates.shape[1] + 1, candidates.shape[1] + 1 + around.shape[1])
+            candidates = torch.cat([candidates, out, around, self._brakes(p, v, start),
+                                    *self._retreats(area, p, goal)], dim=1)
             distance = (candidates - goal[:, None]).norm(dim=-1)
             order = distance.argsort(dim=1, stable=True)
             pick = self._first_safe(area, p, v, held, candidates, order)
@@ -317,7 +317,7 @@ class PusherShield:
                 follow = self._follow(area, p, v, held, goal, stalled)
                 fallback[stalled] = torch.where(follow.isnan(), fallback[stalled], follow)
         else:  # the largest safe step along the line
-            ways_out = candidates
+            ring = slice(0, 0)
             safe = self._safe(area, p, v, candidates, held)
             stuck = ~safe.any(dim=1)
             fallback = candidates[rows, safe.float().argmax(dim=1)]
@@ -331,9 +331,10 @@ class PusherShield:
             if isinstance(area, MovingZones):
                 trapped = torch.nonzero(stuck & (area.reach() > 0)).flatten()
                 if len(trapped):
-                    # Ways out rather than points around the wanted setpoint: fewer paths
-                    # to check, on the executor's time while a hand closes in.
-                    ways_out = torch.cat([ways_out, escape[:, None]], dim=1)[trapped]
+                    # Ways out rather than points around the wanted setpoint (the ring left
+                    # out): fewer paths to check, on the executor's time while a hand closes in.
+                    ways_out = torch.cat([candidates[:, :ring.start], candidates[:, ring.stop:],
+                                          escape[:, None]], dim=1)[trapped]
                     ways_out = torch.maximum(torch.minimum(ways_out, self.high), self.low)
                     farthest = self._farthest(area.select_rows(trapped), p[trapped],
                                               v[trapped], ways_out)

@@ -181,7 +181,7 @@ def unit_runs(study: Study, units: Sequence[Unit]) -> Iterator[tuple[Unit, UnitR
                 yield unit, run
     finally:
         for reference in pending:
-            ray.cancel(reference, force=True)
+            ray.cancel(reference)  # not force: killing a worker mid-reply crashed the driver
 
 
 def group_results(policy: DiffusionPolicy, groups: Sequence[Group], seeds: Sequence[int],

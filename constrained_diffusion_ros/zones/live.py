@@ -20,6 +20,7 @@ from constrained_diffusion_ros.zones.motion import (
     HEADROOM,
     MovingZones,
     ZoneMotion,
+    cover,
 )
 
 ZoneId = str | int
@@ -48,6 +49,8 @@ MAX_AGE_ON_ARRIVAL_S = 1.0
 # s: the robot's reaction a moving zone is grown by where the node names none (the PushT
 # robot's: two control steps and the PD law's lag, `RobotModel.reaction_s`)
 DEFAULT_REACTION_S = 0.4
+# moving zones the plans forecast at most (`LiveZones.forecast`): two hands and room to spare
+MAX_FORECAST = 4
 
 
 @dataclass
@@ -99,9 +102,9 @@ class LiveZones:
         # each id's velocity and the speed assumed of it, from its stamped updates
         self.motion = ZoneMotion(speed_bound, headroom=speed_headroom)
         self.reaction_s = reaction_s  # what a moving zone's reach is sized by (MovingZones)
-        # (snapshot, its zones that stand still with the fixed area, those that move, and
-        # each of those by id)
-        self._moving: tuple[ZoneSet, RestrictedArea, ZoneSet, dict] | None = None
+        # (snapshot, the ids forecast, its zones that stand still with the fixed area, those
+        # that move, those of them not forecast, and each forecast one)
+        self._moving: tuple | None = None
         self.workspace = workspace  # zones are clipped to it, so what is accepted is enforced
         self.fixed = fixed  # always in force besides the zones (a plug-in check)
         self._union: tuple[ZoneSet, RestrictedArea] | None = None
@@ -264,25 +267,42 @@ class LiveZones:
     def _moving_zones(self, snapshot: ZoneSet) -> dict | None:
         """For `snapshot`, the keywords of `MovingZones` but the area: the zones that stand
         still (with the fixed area) and those that move, the fastest speed assumed of them,
-        how long since the one seen longest ago was where it is, and each moving zone with
-        its measured velocity; None: none moves."""
+        how long since the one seen longest ago was where it is, and the moving zones the
+        plans forecast (`forecast`) with their velocities, the others as they are; None: none
+        moves."""
         with self._lock:
             moving = [(i, z) for i, z in self._zones.items() if self.motion.moving(i)]
             if not moving:
                 return None
-            if self._moving is None or self._moving[0] is not snapshot:  # one per snapshot
+            ahead = self.forecast([i for i, _ in moving])
+            if self._moving is None or self._moving[:2] != (snapshot, ahead):
                 ids = {i for i, _ in moving}
                 still = ZoneSet(z.polygon for i, z in self._zones.items() if i not in ids)
                 if self.fixed is not None:
                     still = AreaUnion([self.fixed, still])
-                parts = {i: ZoneSet([z.polygon]) for i, z in moving}
-                self._moving = (snapshot, still, ZoneSet(z.polygon for _, z in moving), parts)
-            _, still, zones, parts = self._moving
+                # each moving zone as a few edges that cover it (`cover`)
+                covers = {i: cover(z.polygon) for i, z in moving}
+                self._moving = (snapshot, ahead, still, ZoneSet(covers.values()),
+                                ZoneSet(c for i, c in covers.items() if i not in ahead),
+                                [ZoneSet([covers[i]]) for i in ahead])
+            _, _, still, zones, steady, parts = self._moving
             return {"still": still, "moving": zones,
                     "speed": max(self.motion.assumed_speed(i) for i, _ in moving),
                     "age_s": max(0.0, time.monotonic() - min(z.seen_at for _, z in moving)),
-                    "drift": [(parts[i], torch.from_numpy(self.motion.velocity(i)))
-                              for i, _ in moving]}
+                    "drift": [(part, torch.from_numpy(self.motion.velocity(i)))
+                              for i, part in zip(ahead, parts, strict=True)],
+                    "steady": steady}
+
+    def forecast(self, moving: list[ZoneId]) -> tuple[ZoneId, ...]:
+        """Of the `moving` ids, those the plans carry on at their measured velocity: at most
+        MAX_FORECAST, the fastest, measured moving within the speed bound. A velocity beyond
+        the bound is not believed (a jump, or a tracker's noise: the shield still assumes the
+        bound of it) and one of 0 changes nothing; the plans take those where they are. Each
+        forecast costs the plans a pass over the chunk, so their number is bounded whatever
+        comes in (a flood of moving ids)."""
+        speeds = {i: self.motion.speed(i) for i in moving}
+        believed = [i for i in moving if 0 < speeds[i] <= self.motion.speed_bound]
+        return tuple(sorted(believed, key=lambda i: -speeds[i])[:MAX_FORECAST])
 
     def version_at(self, step: int) -> int:
         return self._version

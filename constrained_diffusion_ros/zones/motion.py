@@ -20,10 +20,11 @@ it is said, not trusted.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import shapely
 import torch
 from numpy.typing import ArrayLike
 from torch import Tensor
@@ -42,6 +43,18 @@ MOVED_PX = 0.5  # a centroid displaced more between two updates: the zone moves
 # a hand that sets off again after a pause, or speeds up by half, is still covered.
 HEADROOM = 1.5
 FLOOR = 50.0
+COVER_PX = 1.0  # how far a moving zone's outline (`cover`) may lie beyond its convex hull
+
+
+def cover(polygon: shapely.Geometry, tolerance: float = COVER_PX) -> shapely.Geometry:
+    """A convex outline of few vertices that covers `polygon`, at most 2 x `tolerance` px
+    beyond it: what a moving zone is checked as. It is grown by how far it may come anyway
+    (tens of px), so the hull and a px are nothing to the guarantee, and a few edges instead
+    of up to the cap's 64 keep the checks of many moving zones within a control period. The
+    hull is grown by `tolerance` and simplified by as much: a chord of a convex outline lies
+    within `tolerance` of the vertices it drops, so the hull stays inside."""
+    grown = shapely.convex_hull(polygon).buffer(tolerance, join_style="mitre")
+    return shapely.simplify(grown, tolerance)
 
 
 def assumed_speeds(moved: np.ndarray, fastest: np.ndarray, bound: float,
@@ -161,14 +174,17 @@ class MovingZones(RestrictedArea):
     robot has reacted, its separation speed x (age + reaction), as ISO/TS 15066 sizes a
     protective separation distance; the shield checks again at every tick.
 
-    `drift` gives the moving zones one by one with their measured velocities (px/s, (2,) or
-    (B, 2) per row), for the plans: `ahead` forecasts where they will be.
+    `drift` gives moving zones one by one with their measured velocities (px/s, (2,) or
+    (B, 2) per row), for the plans: `ahead` forecasts where they will be. `steady` holds the
+    moving zones not in `drift` (no velocity believed of them): the plans take them where
+    they are; the shield grows them like the others.
     """
 
     def __init__(self, area: RestrictedArea, still: RestrictedArea, moving: RestrictedArea,
                  speed: Tensor | float, age_s: Tensor | float, reaction_s: float,
-                 drift: Sequence[tuple[RestrictedArea, Tensor]] = ()) -> None:
-        self.area, self.still, self.moving = area, still, moving
+                 drift: Sequence[tuple[RestrictedArea, Tensor]] = (),
+                 steady: RestrictedArea | None = None) -> None:
+        self.area, self.still, self.moving, self.steady = area, still, moving, steady
         self.drift = [(part, torch.as_tensor(v, dtype=torch.float64)) for part, v in drift]
         self.reaction_s = float(reaction_s)
         self.speed = torch.as_tensor(speed, dtype=torch.float64)
@@ -187,8 +203,8 @@ class MovingZones(RestrictedArea):
         if not self.drift:
             return self.area
         age = float(self.age_s.max()) if self.age_s.numel() else 0.0
-        return Forecast(self.still, self.drift, torch.as_tensor(seconds, dtype=torch.float64)
-                        + age)
+        still = self.still if self.steady is None else AreaUnion([self.still, self.steady])
+        return Forecast(still, self.drift, torch.as_tensor(seconds, dtype=torch.float64) + age)
 
     def signed_distance(self, points: Tensor) -> Tensor:
         return self.area.signed_distance(points)
@@ -221,22 +237,29 @@ class MovingZones(RestrictedArea):
             return value[rows] if value.dim() == 1 else value
         return MovingZones(self.area.select_rows(rows), self.still.select_rows(rows),
                            self.moving.select_rows(rows), pick(self.speed), pick(self.age_s),
-                           self.reaction_s, _drift_rows(self.drift, rows))
+                           self.reaction_s, _drift_rows(self.drift, rows),
+                           self._steady(lambda area: area.select_rows(rows)))
 
     def near(self, points: Tensor, reach: float) -> RestrictedArea:
         farthest = float(self.reach().max()) if self.speed.numel() else 0.0
         return MovingZones(self.area.near(points, reach), self.still.near(points, reach),
                            self.moving.near(points, reach + farthest), self.speed, self.age_s,
-                           self.reaction_s, self.drift)
+                           self.reaction_s, self.drift, self.steady)
 
     def _inflated(self, radius: float) -> RestrictedArea:
         return MovingZones(self.area.inflate(radius), self.still.inflate(radius),
                            self.moving.inflate(radius), self.speed, self.age_s, self.reaction_s,
-                           [(part.inflate(radius), v) for part, v in self.drift])
+                           [(part.inflate(radius), v) for part, v in self.drift],
+                           self._steady(lambda area: area.inflate(radius)))
 
     def _bounded(self, workspace: Bounds) -> RestrictedArea:
         return MovingZones(self.area.bounded(workspace), self.still.bounded(workspace),
-                           self.moving, self.speed, self.age_s, self.reaction_s, self.drift)
+                           self.moving, self.speed, self.age_s, self.reaction_s, self.drift,
+                           self._steady(lambda area: area.bounded(workspace)))
+
+    def _steady(self, change: Callable[[RestrictedArea], RestrictedArea]
+                ) -> RestrictedArea | None:
+        return None if self.steady is None else change(self.steady)
 
 
 def _drift_rows(drift: list[tuple[RestrictedArea, Tensor]], rows: Tensor

@@ -403,8 +403,8 @@ class PolicyNode(LifecycleNode):
     def _nearest_zone(self) -> dict[str, object]:
         """The zone nearest the pusher: its id, the gap between it and the pusher's disc (px,
         negative: overlapping), its measured speed and the speed assumed of it (px/s); the
-        zones measured faster than `zone_speed_bound`, and the updates that showed a zone
-        faster than it was assumed to move."""
+        zones measured faster than `zone_speed_bound`, the updates that showed a zone
+        faster than it was assumed to move, and those that re-placed one (`ZoneMotion.jumps`)."""
         pusher = self.observations.pusher
         nearest = None if pusher is None else self.zones.nearest(pusher)
         if nearest is None:
@@ -415,4 +415,5 @@ class PolicyNode(LifecycleNode):
                 "nearest_zone_speed": f"{speed:.0f}",
                 "nearest_zone_assumed_speed": f"{assumed:.0f}",
                 "zones_over_speed_bound": ",".join(map(str, self.zones.motion.over_bound())),
-                "zone_speed_exceeded": self.zones.motion.exceeded}
+                "zone_speed_exceeded": self.zones.motion.exceeded,
+                "zone_jumps": self.zones.motion.jumps}

@@ -16,6 +16,12 @@ What a guarantee assumes of a zone (`assumed_speed`, the zone's own bound):
 A zone measured faster than the bound, or faster than it was assumed to move before that
 update, broke the assumption: `over_bound` names the first, `exceeded` counts the second, so
 it is said, not trusted.
+
+An update that puts a zone farther than JUMP x the bound could have taken it is not motion but
+a re-placement (an id reused, a tracker that lost and found its object): the zone counts as
+placed anew there (`jumps`), standing still until an update shows it moving, as a new zone
+does. Nothing could have kept a separation across the jump, and a flood of ids scattered at
+random is not taken for a swarm of hands, each grown by the bound.
 """
 
 from __future__ import annotations
@@ -39,6 +45,7 @@ MIN_UPDATES = 3  # updates (two displacements) before a zone's own speed is trus
 MAX_GAP_S = 1.0  # a longer pause between updates starts the estimate afresh
 SMOOTHING = 0.5  # weight of the newest displacement in the velocity
 MOVED_PX = 0.5  # a centroid displaced more between two updates: the zone moves
+JUMP = 3.0  # displaced faster than JUMP x the bound between two updates: re-placed, not moved
 # A moving zone's own bound: HEADROOM x the fastest it was measured at, at least FLOOR px/s:
 # a hand that sets off again after a pause, or speeds up by half, is still covered.
 HEADROOM = 1.5
@@ -92,6 +99,7 @@ class ZoneMotion:
         self.headroom = headroom
         self.tracks: dict[object, Track] = {}
         self.exceeded = 0  # updates that showed a zone faster than it was assumed to move
+        self.jumps = 0  # updates that re-placed a zone (beyond JUMP x the bound)
 
     def observe(self, zone_id: object, centroid: ArrayLike, stamp: float) -> None:
         """A zone's update: its centroid (px) at `stamp` (s). An update no later than the last
@@ -105,6 +113,10 @@ class ZoneMotion:
             return
         displacement = float(np.linalg.norm(centroid - track.centroid))
         raw = displacement / (stamp - track.stamp)
+        if displacement > MOVED_PX and raw > JUMP * self.speed_bound:
+            self.jumps += 1
+            self.tracks[zone_id] = Track(stamp, centroid, np.zeros(2), 1)
+            return
         if track.moved and raw > self._assumed(track):
             self.exceeded += 1
         moved = track.moved or displacement > MOVED_PX

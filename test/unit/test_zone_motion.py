@@ -85,7 +85,7 @@ def test_replays_and_pauses_say_nothing_of_motion() -> None:
 def test_a_zone_faster_than_the_bound_is_named() -> None:
     motion = ZoneMotion(speed_bound=100.0)
     for k in range(4):
-        motion.observe("fast", (50.0 * k, 0.0), 0.1 * k)  # 500 px/s
+        motion.observe("fast", (25.0 * k, 0.0), 0.1 * k)  # 250 px/s
         motion.observe("slow", (5.0 * k, 0.0), 0.1 * k)  # 50 px/s
     assert motion.over_bound() == ["fast"]
 
@@ -175,18 +175,36 @@ def test_a_moving_zone_is_checked_as_few_edges_that_cover_it(vertices: int,
 
 def test_plans_forecast_a_few_believable_moving_zones_and_take_the_rest_where_they_are() -> None:
     """A flood of moving ids costs the plans at most MAX_FORECAST forecasts: the fastest
-    within the bound. One measured faster than the bound (a jump) is not forecast but the
-    plans still avoid it where it is, and the shield still grows it at the bound."""
+    within the bound. One measured faster than the bound is not forecast (its velocity is not
+    believed) but the plans still avoid it where it is, and the shield grows it at the
+    bound."""
     zones = LiveZones(speed_bound=300.0)
     for k in range(4):
         t = 100.0 + 0.1 * k
         for i in range(8):  # 10..80 px/s, rising with the id
             zones.upsert(i, square(20 + 55 * i + (i + 1) * k, 300), now=t, stamp=t)
-        zones.upsert("jumper", square(20 + 200 * (k % 2), 100), now=t, stamp=t)  # 2000 px/s
+        zones.upsert("too fast", square(20 + 60 * (k % 2), 100), now=t, stamp=t)  # 600 px/s
     forecast = zones.forecast(zones.ids)
     assert forecast == tuple(range(7, 7 - MAX_FORECAST, -1))
     area = zones.area_at(0)
     assert len(area.drift) == MAX_FORECAST and float(area.speed) == 300.0
-    chunk = torch.tensor([[[245.0, 125.0]] * 4])  # inside the jumper, where it is now
+    chunk = torch.tensor([[[105.0, 125.0]] * 4])  # inside the fast one, where it is now
     assert zones.area_at(0).ahead(torch.arange(4) * 0.1).contains(chunk).all()
-    assert area.signed_distance_after(torch.tensor([[245.0, 200.0]]), 0.4) < 0  # 50 px below
+    assert area.signed_distance_after(torch.tensor([[105.0, 200.0]]), 0.4) < 0  # 50 px below
+
+
+def test_a_zone_scattered_faster_than_any_hand_is_placed_anew_not_grown() -> None:
+    """An update beyond JUMP x the bound re-places the zone: it stands still there, as a new
+    zone does, and a flood of scattered ids is not a swarm of hands each grown by the bound.
+    A hand faster than the bound but within JUMP of it still counts as moving."""
+    zones = LiveZones(speed_bound=300.0)
+    for k in range(4):
+        t = 100.0 + 0.05 * k
+        zones.upsert("scattered", square(20 + 300 * (k % 2), 400), now=t, stamp=t)  # 6000 px/s
+        zones.upsert("fast hand", square(20 + 30 * k, 100), now=t, stamp=t)  # 600 px/s
+    assert zones.motion.jumps == 3
+    assert not zones.motion.moving("scattered") and zones.motion.moving("fast hand")
+    assert zones.motion.over_bound() == ["fast hand"]
+    area = zones.area_at(0)
+    beside = torch.tensor([[345.0, 395.0]])  # 5 px above the scattered zone as it is now
+    assert area.signed_distance_after(beside, 0.4).item() == pytest.approx(5.0)

@@ -19,9 +19,11 @@ it is said, not trusted.
 
 An update that puts a zone farther than JUMP x the bound could have taken it is not motion but
 a re-placement (an id reused, a tracker that lost and found its object): the zone counts as
-placed anew there (`jumps`), standing still until an update shows it moving, as a new zone
-does. Nothing could have kept a separation across the jump, and a flood of ids scattered at
-random is not taken for a swarm of hands, each grown by the bound.
+placed anew there (`jumps`), standing still as a new zone does. Its updates go on being taken
+as placements until `max_gap_s` passes without a jump: an id that jumps is not trusted to
+move, so that ids scattered at random (a flood), some of whose updates look like motion by
+chance, are not taken for a swarm of hands each grown by the bound. Nothing could have kept a
+separation across a jump; the static guarantee holds for each placement.
 """
 
 from __future__ import annotations
@@ -83,6 +85,7 @@ class Track:
     updates: int  # updates since the estimate (re)started
     moved: bool = False  # an update has shown it displaced (it may move again at any time)
     fastest: float = 0.0  # px/s, the fastest displacement between two updates so far
+    jumped_at: float = -np.inf  # s, the stamp of its latest jump
 
 
 class ZoneMotion:
@@ -113,9 +116,11 @@ class ZoneMotion:
             return
         displacement = float(np.linalg.norm(centroid - track.centroid))
         raw = displacement / (stamp - track.stamp)
-        if displacement > MOVED_PX and raw > JUMP * self.speed_bound:
-            self.jumps += 1
-            self.tracks[zone_id] = Track(stamp, centroid, np.zeros(2), 1)
+        jumped = displacement > MOVED_PX and raw > JUMP * self.speed_bound
+        if jumped or stamp - track.jumped_at < self.max_gap_s:  # placed anew
+            self.jumps += jumped
+            self.tracks[zone_id] = Track(stamp, centroid, np.zeros(2), 1,
+                                         jumped_at=stamp if jumped else track.jumped_at)
             return
         if track.moved and raw > self._assumed(track):
             self.exceeded += 1

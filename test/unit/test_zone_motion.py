@@ -195,16 +195,21 @@ def test_plans_forecast_a_few_believable_moving_zones_and_take_the_rest_where_th
 
 def test_a_zone_scattered_faster_than_any_hand_is_placed_anew_not_grown() -> None:
     """An update beyond JUMP x the bound re-places the zone: it stands still there, as a new
-    zone does, and a flood of scattered ids is not a swarm of hands each grown by the bound.
-    A hand faster than the bound but within JUMP of it still counts as moving."""
+    zone does, and so do its updates until MAX_GAP_S passes without a jump (a flood of
+    scattered ids, some of whose updates look like motion by chance, is not a swarm of hands
+    each grown by the bound). A hand faster than the bound but within JUMP of it moves."""
     zones = LiveZones(speed_bound=300.0)
-    for k in range(4):
+    xs = [20, 320, 330, 340, 350]  # a jump (6000 px/s), then 200 px/s
+    for k, x in enumerate(xs):
         t = 100.0 + 0.05 * k
-        zones.upsert("scattered", square(20 + 300 * (k % 2), 400), now=t, stamp=t)  # 6000 px/s
+        zones.upsert("scattered", square(x, 400), now=t, stamp=t)
         zones.upsert("fast hand", square(20 + 30 * k, 100), now=t, stamp=t)  # 600 px/s
-    assert zones.motion.jumps == 3
+    assert zones.motion.jumps == 1
     assert not zones.motion.moving("scattered") and zones.motion.moving("fast hand")
     assert zones.motion.over_bound() == ["fast hand"]
-    area = zones.area_at(0)
-    beside = torch.tensor([[345.0, 395.0]])  # 5 px above the scattered zone as it is now
-    assert area.signed_distance_after(beside, 0.4).item() == pytest.approx(5.0)
+    beside = torch.tensor([[375.0, 395.0]])  # 5 px above the scattered zone as it is now
+    assert zones.area_at(0).signed_distance_after(beside, 0.4).item() == pytest.approx(5.0)
+    t = 100.2 + MAX_GAP_S  # a second without a jump: its next displacement is motion again
+    zones.upsert("scattered", square(360, 400), now=t, stamp=t)
+    zones.upsert("scattered", square(370, 400), now=t + 0.05, stamp=t + 0.05)
+    assert zones.motion.moving("scattered")

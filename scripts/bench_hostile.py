@@ -62,9 +62,10 @@ from pathlib import Path
 
 import numpy as np
 import shapely
-from bench_realtime import Client, add_condition_arguments, background_load, respects, square
+from bench_realtime import Client, add_condition_arguments, background_load
 
 from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_domain_id
+from constrained_diffusion_ros.evaluation.live_checks import respects, square
 from constrained_diffusion_ros.paths import SOURCE_ROOT, default_model_dir
 from msg_schemas import TOPICS, qos_profile
 from msg_schemas.conversions import zone_message

@@ -75,8 +75,12 @@ from constrained_diffusion_ros.evaluation.launcher import (
     NodeProcesses,
     random_domain_id,
 )
+from constrained_diffusion_ros.evaluation.live_checks import (
+    respects,
+    stops_outside,
+    zone_in_path,
+)
 from constrained_diffusion_ros.paths import SOURCE_ROOT, default_model_dir
-from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from msg_schemas import NAMESPACE, SERVICES, TOPICS, qos_profile
 from msg_schemas.conversions import (
     path_of,
@@ -95,13 +99,6 @@ MAX_ATTEMPTS = 4  # scenes tried per trial asked for, at most
 # than a chunk lasts), and only just after a plan is installed are there waypoints ahead of it.
 LOOKS = 20
 FLOOD_IDS = 30  # ids cycled by the flood (the node's cap is 32)
-# The pusher's PD law over one control step: per physics substep, its (position, velocity) as
-# weights of (position, velocity, setpoint) at the step's start, per axis.
-ONE_STEP = PUSHT_ROBOT.transition(PUSHT_ROBOT.substeps)
-# Both the distance a step covers and the velocity it ends with scale with setpoint - position.
-VELOCITY_PER_PX_MOVED = ONE_STEP[-1, 1, 2] / ONE_STEP[-1, 0, 2]
-CARRY = float(np.abs(ONE_STEP[:, 0, 1]).max())  # px carried on per px/s of velocity
-TOLERANCE = 0.5  # px: a setpoint this close to the grown zone's boundary respects it
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -314,38 +311,6 @@ class Client:
         rclpy.try_shutdown(context=self.context)
 
 
-def square(centre: np.ndarray, side: float) -> np.ndarray:
-    half = side / 2
-    return centre + np.array([[-half, -half], [half, -half], [half, half], [-half, half]])
-
-
-def zone_in_path(plan: np.ndarray, held: np.ndarray, pusher: np.ndarray, moved: np.ndarray,
-                 side: float) -> np.ndarray | None:
-    """A square on the waypoints about to execute, as close to the held setpoint as can be
-    with the pusher still able to stop outside it even if the node's answer comes one control
-    step late: its disc clear by 2 px of the path it takes in one more step toward the held
-    setpoint (its PD law, from its position and the velocity its last step `moved` implies)
-    plus what it then carries on by its velocity before a new setpoint can stop it. An overlap
-    after that is the filter's fault."""
-    ahead = np.argmin(np.linalg.norm(plan - held, axis=1))
-    for index in range(ahead, len(plan)):
-        centre = np.clip(plan[index], side / 2 + 2, 510 - side / 2)
-        if stops_outside(shapely.Polygon(square(centre, side)), pusher, moved, held):
-            return square(centre, side)
-    return None
-
-
-def stops_outside(shape: shapely.Polygon, pusher: np.ndarray, moved: np.ndarray,
-                  held: np.ndarray) -> bool:
-    """Whether the pusher's disc stays 2 px clear of `shape` over one more step toward `held`
-    and what it then carries on by its velocity (see `zone_in_path`)."""
-    state = np.stack([pusher, VELOCITY_PER_PX_MOVED * moved, held])  # (p, v, u) per axis
-    path = ONE_STEP[:, 0] @ state  # (substeps, 2)
-    carried_on = CARRY * np.linalg.norm(ONE_STEP[-1, 1] @ state)
-    swept = shapely.LineString(np.vstack([pusher, path]))
-    return shape.distance(swept) > AGENT_RADIUS + 2 + carried_on
-
-
 def print_timeline(client: Client, shape: shapely.Polygon, published: float, seed: int,
                    first_setpoint: int, first_pusher: int) -> None:
     """An overlap trial's events around the zone, in ms from its publishing, as the client got
@@ -361,11 +326,6 @@ def print_timeline(client: Client, shape: shapely.Polygon, published: float, see
     for t, text in sorted(events):
         if -400 <= 1000 * (t - published) <= 1500:
             print(f"    {1000 * (t - published):7.1f} ms  {text}")
-
-
-def respects(shape: shapely.Polygon, point: np.ndarray) -> bool:
-    return shape.distance(shapely.Point(*point)) >= AGENT_RADIUS - TOLERANCE and \
-        not shape.contains(shapely.Point(*point))
 
 
 def periods_between(client: Client, start: float, stop: float) -> tuple[list[float], list[float]]:

@@ -69,7 +69,7 @@ def add_compute_arguments(parser: argparse.ArgumentParser) -> None:
 def load_policy_for(args: argparse.Namespace):
     """The policy of `--model`, on `--device` with `--threads`, its network on `--runtime`
     (torch, with one log line, where that runtime cannot run it)."""
-    from constrained_diffusion_ros.policy.runtime import use_runtime
+    from constrained_diffusion_ros.policy.inference import use_runtime
     from constrained_diffusion_ros.policy.weights import load_policy
 
     policy = load_policy(args.model, use_compute_arguments(args))

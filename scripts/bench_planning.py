@@ -36,9 +36,9 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
-from constrained_diffusion_ros.planning.config import load_configurations
+from constrained_diffusion_ros.planning.constraint_configs import load_configurations
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
-from constrained_diffusion_ros.policy import runtime
+from constrained_diffusion_ros.policy import inference
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
@@ -114,7 +114,7 @@ def compiled_denoiser(policy: DiffusionPolicy):
     if shutil.which("c++") is None and shutil.which("g++") is None:
         return "no C++ compiler: inductor cannot build kernels here"
     try:
-        compiled = torch.compile(runtime.FilmedUnet(policy.unet),
+        compiled = torch.compile(inference.FilmedUnet(policy.unet),
                                  mode="max-autotune-no-cudagraphs")
     except Exception as error:  # a report, not a crash
         return f"{type(error).__name__}: {error}"
@@ -188,11 +188,11 @@ def main(argv: list[str] | None = None) -> int:
     for threads in args.threads:
         torch.set_num_threads(threads)
         variants: dict[str, object] = {"torch eager": None}
-        runtime.use_runtime(policy, "torch")
-        chosen = runtime.use_runtime(policy, "onnxruntime")
+        inference.use_runtime(policy, "torch")
+        chosen = inference.use_runtime(policy, "onnxruntime")
         variants["onnxruntime"] = policy.fast if chosen == "onnxruntime" else \
             "fell back to torch (see the log line above)"
-        runtime.use_runtime(policy, "torch")
+        inference.use_runtime(policy, "torch")
         if args.compile:
             variants["torch.compile"] = compiled_denoiser(policy)
         print(f"\n== {threads} thread(s) ==")

@@ -71,7 +71,7 @@ def main() -> int:
     import ray
     import torch
 
-    from constrained_diffusion_ros.evaluation.configurations import load_evaluated
+    from constrained_diffusion_ros.evaluation.evaluated_configurations import load_evaluated
     from constrained_diffusion_ros.evaluation.runner import episodes_per_seed
     from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
     from constrained_diffusion_ros.policy.weights import load_policy

@@ -275,7 +275,7 @@ class Client:
                         shapely.union_all(polygons))
 
     def spin_until(self, condition, timeout: float, what: str) -> None:
-        from msg_schemas.spin import spin_until
+        from msg_schemas.node_support.spin import spin_until
 
         spin_until(self.executor, condition, timeout, period_s=0.005,
                    failed=self.children.failed, what=what)

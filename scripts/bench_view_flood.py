@@ -26,7 +26,7 @@ from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_
 from constrained_diffusion_ros.view.layout import view_channels
 from constrained_diffusion_ros.view.zone_requests import ZONE_REQUEST_SCHEMA_NAME
 from msg_schemas import NAMESPACE, TOPICS, qos_profile
-from msg_schemas.spin import spin_until
+from msg_schemas.node_support.spin import spin_until
 
 GARBAGE_EVERY = 7  # one request in this many is not JSON (7: every id gets good ones too)
 

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
-from constrained_diffusion_ros.planning.config import load_configurations
+from constrained_diffusion_ros.planning.constraint_configs import load_configurations
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT

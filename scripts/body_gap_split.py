@@ -27,7 +27,7 @@ from constrained_diffusion_ros.evaluation.intervals import bootstrap_mean
 from constrained_diffusion_ros.evaluation.runner import evaluate_configurations
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
-from constrained_diffusion_ros.planning.config import load_configurations
+from constrained_diffusion_ros.planning.constraint_configs import load_configurations
 from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 

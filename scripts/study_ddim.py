@@ -22,7 +22,7 @@ from constrained_diffusion_ros.cli import positive_int
 from constrained_diffusion_ros.evaluation.intervals import bootstrap_mean
 from constrained_diffusion_ros.evaluation.rollout import rollout
 from constrained_diffusion_ros.paths import default_model_dir
-from constrained_diffusion_ros.planning.config import ConstraintConfig
+from constrained_diffusion_ros.planning.constraint_configs import ConstraintConfig
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT

@@ -61,8 +61,8 @@ def make_tiny_policy(tiny_dims: tuple[int, ...]) -> Callable[..., DiffusionPolic
     """
     import torch
 
-    from constrained_diffusion_ros.policy.config import PolicyConfig
     from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
+    from constrained_diffusion_ros.policy.policy_config import PolicyConfig
 
     def build(seed: int = 0) -> DiffusionPolicy:
         torch.manual_seed(seed)

@@ -34,7 +34,7 @@ from rosbags.rosbag2.metadata import parse_qos
 from rosbags.typesys import Stores, get_typestore
 
 from constrained_diffusion_ros.cli import ArgumentParser, run_command
-from constrained_diffusion_ros.planning.config import read_yaml
+from constrained_diffusion_ros.planning.constraint_configs import read_yaml
 from msg_schemas import TOPICS, Endpoint
 from msg_schemas.conversions import step_of_stamp
 from sim_bridge import CONTROL_HZ

@@ -20,7 +20,7 @@ from constrained_diffusion_ros.cli import (
     run_command,
 )
 from constrained_diffusion_ros.paths import default_model_dir
-from constrained_diffusion_ros.planning.config import ConstraintConfig
+from constrained_diffusion_ros.planning.constraint_configs import ConstraintConfig
 from constrained_diffusion_ros.policy.schedulers import SPACINGS
 
 

@@ -28,7 +28,7 @@ from msg_schemas.text import one_line
 if TYPE_CHECKING:
     from constrained_diffusion_ros.evaluation.runner import Unit, UnitRun
     from constrained_diffusion_ros.evaluation.scenarios import Scenario
-    from constrained_diffusion_ros.planning.config import ConstraintConfig
+    from constrained_diffusion_ros.planning.constraint_configs import ConstraintConfig
     from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 
 TASK_RETRIES = 3  # runs of a unit after the first when its worker dies
@@ -74,7 +74,7 @@ def model_files(directory: str | Path) -> dict[str, bytes]:
 
 def rebuild_policy(study: Study) -> DiffusionPolicy:
     """The study's policy, loaded from its files as from a directory (never unpickled)."""
-    from constrained_diffusion_ros.policy.runtime import use_runtime
+    from constrained_diffusion_ros.policy.inference import use_runtime
     from constrained_diffusion_ros.policy.weights import load_policy
 
     with tempfile.TemporaryDirectory(prefix="policy-") as directory:

@@ -111,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from constrained_diffusion_ros.evaluation import report
-    from constrained_diffusion_ros.evaluation.configurations import load_evaluated
+    from constrained_diffusion_ros.evaluation.evaluated_configurations import load_evaluated
     from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 
     directory = Path(args.config_dir)

@@ -25,7 +25,7 @@ import numpy as np
 from constrained_diffusion_ros.cli import ArgumentParser, positive_int, run_command
 from constrained_diffusion_ros.evaluation import distributed
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
-from constrained_diffusion_ros.planning.config import load_configurations
+from constrained_diffusion_ros.planning.constraint_configs import load_configurations
 
 # Seeds of evaluation.runner.DEFAULT_SEEDS, written out: runner imports torch, and --help shows
 # the number before any of it (test/unit/test_help_imports.py keeps the two equal).

@@ -10,12 +10,12 @@ from pathlib import Path
 
 import numpy as np
 
-from constrained_diffusion_ros.evaluation.configurations import EvaluatedConfiguration
+from constrained_diffusion_ros.evaluation.evaluated_configurations import EvaluatedConfiguration
 from constrained_diffusion_ros.evaluation.rollout import RolloutLog
 from constrained_diffusion_ros.evaluation.runner import CellResult
 from constrained_diffusion_ros.evaluation.scenarios import Scenario
 from constrained_diffusion_ros.paths import config_dir
-from constrained_diffusion_ros.planning.config import read_yaml
+from constrained_diffusion_ros.planning.constraint_configs import read_yaml
 
 
 def load_paper_table(path: Path | None = None) -> dict[str, dict[str, list[float]]]:

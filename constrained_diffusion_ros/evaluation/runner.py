@@ -16,7 +16,7 @@ from constrained_diffusion_ros.evaluation.intervals import bootstrap_mean, wilso
 from constrained_diffusion_ros.evaluation.rollout import RolloutLog, rollout
 from constrained_diffusion_ros.evaluation.scenarios import Scenario
 from constrained_diffusion_ros.evaluation.zone_paths import ZoneMover
-from constrained_diffusion_ros.planning.config import ConstraintConfig
+from constrained_diffusion_ros.planning.constraint_configs import ConstraintConfig
 from constrained_diffusion_ros.planning.liveness import STANDSTILL_NEAR_PX, standstills
 from constrained_diffusion_ros.planning.planners import MixedPlanner
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy

@@ -19,7 +19,7 @@ import shapely
 
 from constrained_diffusion_ros.evaluation.zone_paths import ZonePath
 from constrained_diffusion_ros.paths import config_dir
-from constrained_diffusion_ros.planning.config import read_yaml
+from constrained_diffusion_ros.planning.constraint_configs import read_yaml
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones.area import RestrictedArea
 from constrained_diffusion_ros.zones.geometry import ZoneSet, rectangle, validate_polygon

@@ -34,7 +34,7 @@ from constrained_diffusion_ros.evaluation.bags import (
 from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_domain_id
 from constrained_diffusion_ros.nodes.zone_publisher import MAX_KEEPOUT_CELLS
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
-from constrained_diffusion_ros.planning.config import load_configurations
+from constrained_diffusion_ros.planning.constraint_configs import load_configurations
 from msg_schemas import NAMESPACE, OPTIONAL_NODES, SERVICES, TOPICS
 from msg_schemas.conversions import point_of, pose2d_of, step_of_stamp, zones_shown
 from sim_bridge import CONTROL_HZ
@@ -136,7 +136,7 @@ def run_trial(args: argparse.Namespace) -> dict:
     from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
     from constrained_diffusion_ros.policy.weights import load_policy
     from msg_schemas import qos_profile
-    from msg_schemas.spin import spin_until
+    from msg_schemas.node_support.spin import spin_until
 
     scenarios = load_scenarios(args.scenarios_file)
     scenario = scenarios.get(args.scenario) if args.scenario != "none" else None
@@ -341,7 +341,7 @@ def bag_lacks(bag: Path, heard: set[str], received: dict[str, dict[int, object]]
 
 def matched(log: Path, topic: str, side: str) -> int:
     """The last count of `side`s ("publisher" or "subscriber") a node logged as matched on the
-    contract topic (msg_schemas.spin.log_matches); 0 before any."""
+    contract topic (msg_schemas.node_support.spin.log_matches); 0 before any."""
     counts = re.findall(rf"{re.escape(TOPICS[topic].resolved())}: (\d+) {side}\(s\) matched",
                         log.read_text())
     return int(counts[-1]) if counts else 0

@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike
 from torch import Tensor
 
 from constrained_diffusion_ros.paths import config_dir
-from constrained_diffusion_ros.planning.config import read_yaml
+from constrained_diffusion_ros.planning.constraint_configs import read_yaml
 from constrained_diffusion_ros.zones import Bounds, RestrictedArea, ZoneSet, validate_polygon
 
 WORKSPACE_CENTRE = (256.0, 256.0)  # PushT's 512 x 512 workspace: a point every camera sees

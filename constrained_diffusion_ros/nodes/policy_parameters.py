@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.runtime.os_scheduling import CLOCK_PRIORITY, EXECUTOR_PRIORITY
-from msg_schemas.parameters import Param
+from msg_schemas.node_support.parameters import Param
 from msg_schemas.text import one_line
 from sim_bridge.scene import AGENT_RADIUS, CONTROL_HZ, K_P, K_V, SIM_HZ, WORKSPACE_SIZE
 
@@ -170,7 +170,7 @@ def live_zones(values: dict, workspace: Bounds, reaction_s: float) -> LiveZones:
 def plug_in_area(spec: str, parameters: str, workspace: Bounds) -> RestrictedArea | None:
     """The plug-in check named by the parameters, probed over `workspace`, or None;
     ValueError with one line."""
-    from constrained_diffusion_ros.planning.config import safe_yaml
+    from constrained_diffusion_ros.planning.constraint_configs import safe_yaml
     from constrained_diffusion_ros.zones.plugins import load_area
 
     if not spec:

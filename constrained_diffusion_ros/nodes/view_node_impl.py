@@ -16,7 +16,7 @@ from geometry_msgs.msg import PolygonInstanceStamped
 from rclpy.node import Node
 
 from constrained_diffusion_ros.nodes.policy_status import StatusReporter
-from constrained_diffusion_ros.planning.config import load_configurations
+from constrained_diffusion_ros.planning.constraint_configs import load_configurations
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.view.layout import view_channels
 from constrained_diffusion_ros.view.scene import (
@@ -33,8 +33,8 @@ from constrained_diffusion_ros.view.zone_requests import (
 )
 from msg_schemas import NAMESPACE, TOPICS, qos_profile
 from msg_schemas.conversions import zone_message
-from msg_schemas.parameters import Param, declare
-from msg_schemas.spin import UnusableArgument
+from msg_schemas.node_support.parameters import Param, declare
+from msg_schemas.node_support.spin import UnusableArgument
 from msg_schemas.text import one_line
 
 STATUS_PERIOD_S = 1.0

@@ -33,8 +33,9 @@ from rclpy.qos import DurabilityPolicy
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
+from constrained_diffusion_ros.runtime.mask_builder import MaskBuilder
 from constrained_diffusion_ros.zones.area import Bounds
-from constrained_diffusion_ros.zones.grid import BuiltMask, MaskBuilder, MaskCaps, build_mask
+from constrained_diffusion_ros.zones.grid import BuiltMask, MaskCaps, build_mask
 from constrained_diffusion_ros.zones.live import BatchOutcome, LiveZones
 from msg_schemas import FRAME_ID, SERVICES, TOPICS, qos_profile
 from msg_schemas.capped import mask_message_cap, read_capped, zone_message_cap

@@ -17,11 +17,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from constrained_diffusion_ros.planning.config import ConstraintConfig
+from constrained_diffusion_ros.planning.constraint_configs import ConstraintConfig
 from constrained_diffusion_ros.planning.robot import RobotModel
 from constrained_diffusion_ros.planning.shield import PusherShield
-from constrained_diffusion_ros.policy.config import PolicyConfig
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
+from constrained_diffusion_ros.policy.policy_config import PolicyConfig
 from constrained_diffusion_ros.sampling.hooks import (
     CommittedPrefix,
     FinalProjection,

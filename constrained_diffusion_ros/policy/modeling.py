@@ -9,8 +9,8 @@ from typing import TYPE_CHECKING
 import torch
 from torch import nn
 
-from constrained_diffusion_ros.policy.config import PolicyConfig
 from constrained_diffusion_ros.policy.normalizer import MinMaxNormalizer
+from constrained_diffusion_ros.policy.policy_config import PolicyConfig
 from constrained_diffusion_ros.policy.schedulers import make_scheduler
 from constrained_diffusion_ros.policy.unet import ConditionalUnet1D
 
@@ -42,7 +42,7 @@ class DiffusionPolicy(nn.Module):
         self.unet = build_unet(config)
         self.obs_normalizer = MinMaxNormalizer.from_dict(config.normalizer["obs"])
         self.action_normalizer = MinMaxNormalizer.from_dict(config.normalizer["action"])
-        # Where the network runs at inference when not in torch (runtime.py's `use_runtime`):
+        # Where the network runs at inference when not in torch (inference.py's `use_runtime`):
         # (sample, one step's FiLM outputs) -> noise, as `unet.forward_filmed`; None: torch.
         self.fast: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None
         # The FiLM's step part for one schedule and its weights on the condition, kept for a

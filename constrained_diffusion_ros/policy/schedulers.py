@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Literal
 
-from constrained_diffusion_ros.policy.config import PolicyConfig
+from constrained_diffusion_ros.policy.policy_config import PolicyConfig
 
 if TYPE_CHECKING:
     from diffusers import DDIMScheduler, DDPMScheduler

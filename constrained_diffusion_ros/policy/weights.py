@@ -9,14 +9,14 @@ import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_file
 
-from constrained_diffusion_ros.policy.config import (
+from constrained_diffusion_ros.policy.device import resolve_device
+from constrained_diffusion_ros.policy.modeling import DiffusionPolicy, build_unet
+from constrained_diffusion_ros.policy.policy_config import (
     MAX_CONFIG_BYTES,
     PolicyConfig,
     read_text_file,
     regular_file,
 )
-from constrained_diffusion_ros.policy.device import resolve_device
-from constrained_diffusion_ros.policy.modeling import DiffusionPolicy, build_unet
 
 WEIGHTS_FILE = "model.safetensors"
 CONFIG_FILE = "config.json"

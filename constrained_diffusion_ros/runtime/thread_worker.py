@@ -21,8 +21,8 @@ import torch
 
 from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult, plan_chunk
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
+from constrained_diffusion_ros.runtime.newest_job import NewestJobThread
 from constrained_diffusion_ros.sampling.sampler import Interrupted
-from constrained_diffusion_ros.zones.newest_job import NewestJobThread
 from constrained_diffusion_ros.zones.plugins import ZoneCheckError
 
 LOGGER = logging.getLogger(__name__)

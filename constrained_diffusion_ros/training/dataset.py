@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from constrained_diffusion_ros.policy.config import regular_file
+from constrained_diffusion_ros.policy.policy_config import regular_file
 
 REQUIRED_ARRAYS = ("data/state", "data/action", "data/keypoint", "meta/episode_ends")
 

@@ -137,9 +137,9 @@ def starting_policy(args: argparse.Namespace, demos) -> DiffusionPolicy:
     starts as exactly the policy it was, and learns what the zones add."""
     import torch
 
-    from constrained_diffusion_ros.policy.config import PolicyConfig
     from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
     from constrained_diffusion_ros.policy.normalizer import MinMaxNormalizer
+    from constrained_diffusion_ros.policy.policy_config import PolicyConfig
     from constrained_diffusion_ros.policy.weights import load_policy
 
     zone_grid = ZONE_GRID if args.zones else 0

@@ -16,7 +16,7 @@ build a mask from polygons; `read_pgm` reads a map image as map_server saves it.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -26,7 +26,6 @@ from numpy.typing import ArrayLike
 
 from constrained_diffusion_ros.zones.area import Bounds
 from constrained_diffusion_ros.zones.geometry import validate_polygon
-from constrained_diffusion_ros.zones.newest_job import NewestJobThread
 
 KEEPOUT = 100  # the value `rasterize` writes in keep-out cells
 DEFAULT_THRESHOLD = 65  # nav2 map_server's occupied_thresh 0.65, in OccupancyGrid percent
@@ -274,46 +273,3 @@ def build_mask(grid: dict, caps: MaskCaps, workspace: Bounds | None, sequence: i
     except Exception as error:  # a mask must never end the builder's thread
         built = BuiltMask(sequence, None, f"{type(error).__name__}: {error}", stamp)
     return replace(built, seconds=time.perf_counter() - started)
-
-
-class MaskBuilder(NewestJobThread):
-    """Builds keep-out masks on a thread of its own, so that the thread which answers zones and
-    observations never waits for one: a fine mask costs a scan and a union that a zone dropped
-    meanwhile must not queue behind.
-
-    Only the newest mask matters (a mask replaces the previous one): `submit` replaces one not
-    started yet, and a result whose mask was superseded while it was built is not handed over.
-    `on_built` is called on the builder's thread with each `BuiltMask`; the owner applies it on
-    its own thread. Like tf2's listener, the helper owns its thread; `shutdown` ends it.
-    """
-
-    def __init__(self, on_built: Callable[[BuiltMask], None], caps: MaskCaps = MaskCaps(),
-                 workspace: Bounds | None = None) -> None:
-        super().__init__(self._run, "mask_builder")
-        self._on_built, self.caps, self.workspace = on_built, caps, workspace
-        self._job: tuple[int, dict, float | None] | None = None
-        self._sequence = 0
-        self._thread.start()
-
-    def submit(self, stamp: float | None = None, **grid: object) -> int:
-        """Build `grid_polygons(**grid)` under the caps; returns the mask's sequence number."""
-        with self._wake:
-            self._sequence += 1
-            self._job = (self._sequence, grid, stamp)
-            self._wake.notify()
-            return self._sequence
-
-    @property
-    def latest(self) -> int:
-        """The sequence number of the newest mask submitted."""
-        return self._sequence
-
-    def _run(self) -> None:
-        while True:
-            with self._wake:
-                if not self._wait_for_job():
-                    return
-                (sequence, grid, stamp), self._job = self._job, None
-            built = build_mask(grid, self.caps, self.workspace, sequence, stamp)
-            if sequence == self._sequence:  # not superseded while it was built
-                self._on_built(built)

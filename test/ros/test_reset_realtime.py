@@ -26,10 +26,11 @@ from ros_helpers import observation_messages, stamp_ns, step_ns, step_stamp
 from std_srvs.srv import Trigger
 
 from constrained_diffusion_ros.nodes.observation_input import ObservationInput
+from constrained_diffusion_ros.nodes.policy_modes import Realtime
 from constrained_diffusion_ros.nodes.policy_node import PolicyNode
 from constrained_diffusion_ros.nodes.setpoint_output import SetpointOutput
 from constrained_diffusion_ros.planning.chunk_loop import ChunkLoop
-from constrained_diffusion_ros.planning.config import ConstraintConfig
+from constrained_diffusion_ros.planning.constraint_configs import ConstraintConfig
 from constrained_diffusion_ros.planning.liveness import StandstillCounts
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.planning.sound_setpoints import SoundSetpoints
@@ -62,9 +63,10 @@ class StandInNode:
 
 
 class RealtimeObservations:
-    """`PolicyNode._on_observation` in realtime mode, on stand-ins: the node's own observation
-    input and setpoint output, and a chunk loop whose plans arrive `delay` steps after they are
-    asked for. `observe` feeds one observation's two halves, `tick` is the clock's."""
+    """The policy node's realtime observations (`policy_modes.Realtime.observe`), on
+    stand-ins: the node's own observation input and setpoint output, and a chunk loop whose
+    plans arrive `delay` steps after they are asked for. `observe` feeds one observation's two
+    halves, `tick` is the clock's."""
 
     def __init__(self, policy, delay: int = 2) -> None:
         self.stand_in = StandInNode()
@@ -74,13 +76,13 @@ class RealtimeObservations:
                                   inflate=True, shield=True)
         planner = ConstrainedPlanner(policy, config, PUSHT_ROBOT)
         self.loop = ChunkLoop.simulated(planner, zones, delay=delay, handover="async")
-        node = SimpleNamespace(realtime=True, robot=PUSHT_ROBOT, zones=zones, sound=sound,
-                               loop=self.loop, latest_stamp=None, runs_restarted=0,
+        node = SimpleNamespace(robot=PUSHT_ROBOT, zones=zones, sound=sound, loop=self.loop,
                                standstills=StandstillCounts(),
                                output=SetpointOutput(self.stand_in, sound))
-        for method in ("_on_observation", "_take", "_send"):
+        for method in ("take", "send"):
             setattr(node, method, getattr(PolicyNode, method).__get__(node))
-        node.observations = ObservationInput(self.stand_in, PUSHT_ROBOT, node._on_observation)
+        self.timing = Realtime(node)
+        node.observations = ObservationInput(self.stand_in, PUSHT_ROBOT, self.timing.observe)
         self.node = node
 
     def observe(self, step: int, pusher: tuple[float, float]) -> None:
@@ -120,10 +122,10 @@ def test_a_new_run_stays_new_until_one_of_its_observations_is_taken(tiny_policy)
         node.observe(step, (100.0, 100.0))
     for step in range(2):
         node.observe(step, (1e6, 1e6))  # the new run's first two: refused
-    assert node.node.runs_restarted == 1
+    assert node.timing.runs_restarted == 1
     node.observe(2, (400.0, 400.0))
     assert node.node.observations.refused == 2
-    assert node.node.runs_restarted == 1
+    assert node.timing.runs_restarted == 1
     assert node.node.observations.moved is None  # a new episode's first
     assert node.tick() == [(step_ns(2), (400.0, 400.0))]
     assert node.loop.stats.plans_asked == 2  # the run before's, and this one's afresh

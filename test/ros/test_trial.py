@@ -20,7 +20,7 @@ from constrained_diffusion_ros.evaluation.runner import evaluate_configuration
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 from constrained_diffusion_ros.evaluation.trial import bag_lacks
 from constrained_diffusion_ros.examples.camera import CameraZones
-from constrained_diffusion_ros.planning.config import load_configurations
+from constrained_diffusion_ros.planning.constraint_configs import load_configurations
 from constrained_diffusion_ros.policy.weights import load_policy
 from msg_schemas import TOPICS
 

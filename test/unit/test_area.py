@@ -12,7 +12,7 @@ from torch import Tensor
 
 from constrained_diffusion_ros.evaluation.rollout import rollout
 from constrained_diffusion_ros.paths import config_dir
-from constrained_diffusion_ros.planning.config import load_configurations
+from constrained_diffusion_ros.planning.constraint_configs import load_configurations
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT

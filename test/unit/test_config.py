@@ -10,15 +10,15 @@ from pathlib import Path
 import pytest
 import yaml
 
-from constrained_diffusion_ros.evaluation.configurations import load_evaluated
+from constrained_diffusion_ros.evaluation.evaluated_configurations import load_evaluated
 from constrained_diffusion_ros.paths import config_dir
-from constrained_diffusion_ros.planning.config import (
+from constrained_diffusion_ros.planning.constraint_configs import (
     ConstraintConfig,
     load_configurations,
     safe_yaml,
 )
-from constrained_diffusion_ros.policy.config import PolicyConfig
 from constrained_diffusion_ros.policy.normalizer import MinMaxNormalizer
+from constrained_diffusion_ros.policy.policy_config import PolicyConfig
 
 # -- Configurations ------------------------------------------------------------------------------
 

@@ -14,10 +14,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
+from constrained_diffusion_ros.runtime.mask_builder import MaskBuilder
 from constrained_diffusion_ros.zones import ZoneSet, rectangle, validate_polygon
 from constrained_diffusion_ros.zones.grid import (
     BuiltMask,
-    MaskBuilder,
     MaskCaps,
     grid_polygons,
     rasterize,

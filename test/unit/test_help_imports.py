@@ -78,7 +78,7 @@ def test_the_defaults_help_shows_are_the_cores() -> None:
     from constrained_diffusion_ros.evaluation.runner import DEFAULT_SEEDS, DEFAULT_UNIT_SIZE
     from constrained_diffusion_ros.nodes import policy_parameters as written
     from constrained_diffusion_ros.nodes import view_node, zone_publisher
-    from constrained_diffusion_ros.policy import device, runtime
+    from constrained_diffusion_ros.policy import device, inference
     from constrained_diffusion_ros.pusht import PUSHT_ROBOT
     from constrained_diffusion_ros.zones import grid, live, motion
 
@@ -87,7 +87,7 @@ def test_the_defaults_help_shows_are_the_cores() -> None:
     view_defaults = {param.name: param.default for param in view_node.PARAMETERS}
     pairs = {  # what --help shows: (written out, the owner's)
         "DEVICES": (written.DEVICES, device.DEVICES),
-        "RUNTIMES": (written.RUNTIMES, runtime.RUNTIMES),
+        "RUNTIMES": (written.RUNTIMES, inference.RUNTIMES),
         "DEFAULT_THRESHOLD": (written.DEFAULT_THRESHOLD, grid.DEFAULT_THRESHOLD),
         "MASK_PIECES": (written.MASK_PIECES, caps.pieces),
         "MASK_VERTICES": (written.MASK_VERTICES, caps.vertices),

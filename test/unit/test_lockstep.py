@@ -9,7 +9,7 @@ import torch
 
 from constrained_diffusion_ros.planning.action_queue import ObservationHistory
 from constrained_diffusion_ros.planning.chunk_loop import ChunkLoop
-from constrained_diffusion_ros.policy.config import PolicyConfig
+from constrained_diffusion_ros.policy.policy_config import PolicyConfig
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones import RestrictedArea, ZoneSet, rectangle
 

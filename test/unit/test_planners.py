@@ -12,7 +12,7 @@ import torch
 from samples import CENTRE, executed, observations
 
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
-from constrained_diffusion_ros.planning.config import ConstraintConfig
+from constrained_diffusion_ros.planning.constraint_configs import ConstraintConfig
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner, MixedPlanner
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
@@ -183,7 +183,7 @@ import numpy as np
 import constrained_diffusion_ros.nodes.policy_node_impl  # what the node imports
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.runtime.live_loop import warm_up
-from constrained_diffusion_ros.planning.config import load_configurations
+from constrained_diffusion_ros.planning.constraint_configs import load_configurations
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT

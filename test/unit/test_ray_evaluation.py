@@ -25,7 +25,7 @@ from constrained_diffusion_ros.evaluation.runner import (
     study_units,
 )
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
-from constrained_diffusion_ros.planning.config import ConstraintConfig
+from constrained_diffusion_ros.planning.constraint_configs import ConstraintConfig
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.weights import save_policy
 
@@ -86,7 +86,7 @@ def cluster(ray_temp: None) -> Iterator[str]:
 def model(tmp_path_factory: pytest.TempPathFactory) -> Path:
     import torch
 
-    from constrained_diffusion_ros.policy.config import PolicyConfig
+    from constrained_diffusion_ros.policy.policy_config import PolicyConfig
 
     torch.manual_seed(0)
     stats = {"obs": {"min": [0.0] * 20, "max": [512.0] * 20},

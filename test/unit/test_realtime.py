@@ -27,7 +27,7 @@ from test_lockstep import CONFIG, Scripted, lockstep
 
 from constrained_diffusion_ros.planning.action_queue import ActionQueue, committed_prefix
 from constrained_diffusion_ros.planning.chunk_loop import ChunkLoop, LoopSettings
-from constrained_diffusion_ros.planning.config import ConstraintConfig
+from constrained_diffusion_ros.planning.constraint_configs import ConstraintConfig
 from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult, plan_chunk
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
@@ -575,7 +575,7 @@ def test_the_planning_process_exits_when_the_node_is_killed(make_tiny_policy, tm
     node = subprocess.Popen([sys.executable, "-c", (
         "import sys, time\n"
         "from constrained_diffusion_ros.planning.planners import ConstrainedPlanner\n"
-        "from constrained_diffusion_ros.planning.config import ConstraintConfig\n"
+        "from constrained_diffusion_ros.planning.constraint_configs import ConstraintConfig\n"
         "from constrained_diffusion_ros.runtime.planning_process import PlanningProcess\n"
         "from constrained_diffusion_ros.policy.weights import load_policy\n"
         "from constrained_diffusion_ros.pusht import PUSHT_ROBOT\n"
@@ -604,7 +604,7 @@ def test_a_planning_child_whose_node_is_killed_mid_plan_exits_without_a_tracebac
         node = subprocess.Popen([sys.executable, "-c", (
             "import time, torch\n"
             "from constrained_diffusion_ros.planning.planners import ConstrainedPlanner\n"
-            "from constrained_diffusion_ros.planning.config import ConstraintConfig\n"
+            "from constrained_diffusion_ros.planning.constraint_configs import ConstraintConfig\n"
             "from constrained_diffusion_ros.planning.plan_jobs import PlanJob\n"
             "from constrained_diffusion_ros.runtime.planning_process import PlanningProcess\n"
             "from constrained_diffusion_ros.policy.weights import load_policy\n"

@@ -15,7 +15,7 @@ from constrained_diffusion_ros.evaluation import evaluate
 from constrained_diffusion_ros.evaluation.rollout import RolloutLog
 from constrained_diffusion_ros.evaluation.runner import cell_metrics, evaluate_configurations
 from constrained_diffusion_ros.evaluation.scenarios import Scenario, load_scenarios
-from constrained_diffusion_ros.planning.config import ConstraintConfig
+from constrained_diffusion_ros.planning.constraint_configs import ConstraintConfig
 from constrained_diffusion_ros.planning.liveness import StandstillMeter, standstills
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.weights import save_policy

@@ -18,7 +18,7 @@ import pytest
 import torch
 
 from constrained_diffusion_ros.planning.chunk_loop import ChunkLoop
-from constrained_diffusion_ros.planning.config import ConstraintConfig
+from constrained_diffusion_ros.planning.constraint_configs import ConstraintConfig
 from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy

@@ -12,8 +12,8 @@ import pytest
 import shapely
 import torch
 
-from constrained_diffusion_ros.policy.config import PolicyConfig
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
+from constrained_diffusion_ros.policy.policy_config import PolicyConfig
 from constrained_diffusion_ros.policy.weights import load_policy, save_policy
 from constrained_diffusion_ros.sampling.sampler import DenoisingSampler
 from constrained_diffusion_ros.training import train

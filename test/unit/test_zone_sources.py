@@ -11,7 +11,7 @@ import pytest
 import shapely
 import torch
 
-from constrained_diffusion_ros.evaluation.configurations import load_evaluated
+from constrained_diffusion_ros.evaluation.evaluated_configurations import load_evaluated
 from constrained_diffusion_ros.evaluation.rollout import RolloutLog
 from constrained_diffusion_ros.evaluation.runner import cell_metrics, evaluate_configurations
 from constrained_diffusion_ros.evaluation.scenarios import Scenario, load_scenarios

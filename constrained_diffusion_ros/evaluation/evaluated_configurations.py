@@ -1,13 +1,13 @@
 """The evaluation's view of the constraint configurations: how the report labels each one,
 whether it is one of the paper's six, and on which scenarios it runs (`config/evaluation.yaml`).
-What a configuration does is `planning.config`'s; this is presentation only."""
+What a configuration does is `planning.constraint_configs`'s; this is presentation only."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
 
-from constrained_diffusion_ros.planning.config import (
+from constrained_diffusion_ros.planning.constraint_configs import (
     ConstraintConfig,
     load_configurations,
     read_yaml,

@@ -28,7 +28,7 @@ from rclpy.subscription import Subscription
 from rclpy.timer import Timer
 from rclpy.utilities import remove_ros_args
 
-from msg_schemas.parameters import Param, answered_help
+from msg_schemas.node_support.parameters import Param, answered_help
 from msg_schemas.text import one_line
 
 BAD_ARGUMENTS = 2  # exit code of a command line rclpy cannot parse, as argparse's

@@ -11,7 +11,7 @@ from pathlib import Path
 import yaml
 from yaml.composer import ComposerError
 
-from constrained_diffusion_ros.policy.config import read_text_file
+from constrained_diffusion_ros.policy.policy_config import read_text_file
 from constrained_diffusion_ros.policy.schedulers import SPACINGS
 
 # Upper bounds that keep a typo from planning for minutes or allocating gigabytes, far above

@@ -10,9 +10,9 @@ import pytest
 import torch
 
 from constrained_diffusion_ros.paths import default_model_dir
-from constrained_diffusion_ros.planning.config import ConstraintConfig
+from constrained_diffusion_ros.planning.constraint_configs import ConstraintConfig
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
-from constrained_diffusion_ros.policy import runtime
+from constrained_diffusion_ros.policy import inference
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
@@ -30,7 +30,7 @@ def test_every_forward_of_a_body_safe_plan_agrees_with_torch(
     ONNX Runtime forward (its FiLM's step part computed once for the schedule, its
     condition's part once per plan) equals torch's own forward on the same input to
     TOLERANCE."""
-    assert runtime.use_runtime(shipped, "onnxruntime") == "onnxruntime"
+    assert inference.use_runtime(shipped, "onnxruntime") == "onnxruntime"
     fast_denoiser, worst, calls = shipped.denoiser, [0.0], [0]
 
     def compared(timesteps: torch.Tensor, cond: torch.Tensor):
@@ -57,9 +57,9 @@ def test_every_forward_of_a_body_safe_plan_agrees_with_torch(
             assert chunks.shape == (batch, shipped.config.horizon, 2)
             assert torch.isfinite(chunks).all()
     finally:
-        runtime.use_runtime(shipped, "torch")
+        inference.use_runtime(shipped, "torch")
     assert calls[0] >= 20  # every forward of both plans went through the check
-    assert worst[0] <= runtime.TOLERANCE
+    assert worst[0] <= inference.TOLERANCE
 
 
 def test_the_film_outputs_split_into_the_steps_part_and_the_conditions(
@@ -80,29 +80,29 @@ def test_the_film_outputs_split_into_the_steps_part_and_the_conditions(
 def test_the_graph_travels_with_the_policy_and_opens_again(shipped: DiffusionPolicy) -> None:
     """A planning process gets the policy pickled: the session is opened there again."""
     try:
-        assert runtime.use_runtime(shipped, "onnxruntime") == "onnxruntime"
+        assert inference.use_runtime(shipped, "onnxruntime") == "onnxruntime"
         copy = pickle.loads(pickle.dumps(shipped))
-        assert isinstance(copy.fast, runtime.OnnxDenoiser)
-        assert runtime.disagreement(copy, copy.fast, seed=5) <= runtime.TOLERANCE
+        assert isinstance(copy.fast, inference.OnnxDenoiser)
+        assert inference.disagreement(copy, copy.fast, seed=5) <= inference.TOLERANCE
     finally:
-        runtime.use_runtime(shipped, "torch")
+        inference.use_runtime(shipped, "torch")
 
 
 def test_the_graph_is_cached_between_starts_and_a_bad_cache_is_exported_afresh(
         shipped: DiffusionPolicy, monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
-    exports, export = [], runtime.export_onnx
-    monkeypatch.setattr(runtime, "export_onnx", lambda p: (exports.append(1), export(p))[1])
+    exports, export = [], inference.export_onnx
+    monkeypatch.setattr(inference, "export_onnx", lambda p: (exports.append(1), export(p))[1])
     try:
-        assert runtime.use_runtime(shipped, "onnxruntime") == "onnxruntime"
-        (cached,) = runtime.cache_dir().glob("*.onnx")
-        assert runtime.use_runtime(shipped, "onnxruntime") == "onnxruntime"
+        assert inference.use_runtime(shipped, "onnxruntime") == "onnxruntime"
+        (cached,) = inference.cache_dir().glob("*.onnx")
+        assert inference.use_runtime(shipped, "onnxruntime") == "onnxruntime"
         assert len(exports) == 1  # the second start read the cache
         cached.write_bytes(b"not a graph")
-        assert runtime.use_runtime(shipped, "onnxruntime") == "onnxruntime"
+        assert inference.use_runtime(shipped, "onnxruntime") == "onnxruntime"
         assert len(exports) == 2 and cached.read_bytes() != b"not a graph"  # and cached again
     finally:
-        runtime.use_runtime(shipped, "torch")
+        inference.use_runtime(shipped, "torch")
 
 
 @pytest.mark.parametrize("fault", ["cannot export", "disagrees"])
@@ -113,11 +113,11 @@ def test_a_runtime_that_cannot_run_the_network_falls_back_to_torch_saying_so(
     if fault == "cannot export":
         def broken(_policy):
             raise RuntimeError("Unsupported: ONNX export of operator mish\nmore detail")
-        monkeypatch.setattr(runtime, "export_onnx", broken)
+        monkeypatch.setattr(inference, "export_onnx", broken)
     else:
-        monkeypatch.setattr(runtime, "disagreement", lambda *_args, **_kw: 0.5)
-    with caplog.at_level(logging.WARNING, logger=runtime.__name__):
-        assert runtime.use_runtime(shipped, "onnxruntime") == "torch"
+        monkeypatch.setattr(inference, "disagreement", lambda *_args, **_kw: 0.5)
+    with caplog.at_level(logging.WARNING, logger=inference.__name__):
+        assert inference.use_runtime(shipped, "onnxruntime") == "torch"
     assert shipped.fast is None
     lines = [r.getMessage() for r in caplog.records]
     assert len(lines) == 1 and "using torch" in lines[0] and "\n" not in lines[0]
@@ -125,4 +125,4 @@ def test_a_runtime_that_cannot_run_the_network_falls_back_to_torch_saying_so(
 
 def test_an_unknown_runtime_is_refused(shipped: DiffusionPolicy) -> None:
     with pytest.raises(ValueError, match="runtime must be one of"):
-        runtime.use_runtime(shipped, "tensorrt")
+        inference.use_runtime(shipped, "tensorrt")

@@ -1,8 +1,7 @@
 """The hand-off of a helper that owns a worker thread and serves only the newest job: a job not
 started yet is replaced by the next, and `shutdown` stops and joins the thread, as tf2_ros's
-listener owns its thread. Its users are the keep-out mask builder (zones/grid.py) and the
-planning thread (runtime/thread_worker.py); it lives here, in the lowest core layer that both
-import."""
+listener owns its thread. Its users are the keep-out mask builder (runtime/mask_builder.py)
+and the planning thread (runtime/thread_worker.py)."""
 
 from __future__ import annotations
 

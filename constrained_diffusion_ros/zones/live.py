@@ -296,8 +296,9 @@ class LiveZones:
     def forecast(self, moving: list[ZoneId]) -> tuple[ZoneId, ...]:
         """Of the `moving` ids, those the plans carry on at their measured velocity: at most
         MAX_FORECAST, the fastest, measured moving within the speed bound. A velocity beyond
-        the bound is not believed (a jump, or a tracker's noise: the shield still assumes the
-        bound of it) and one of 0 changes nothing; the plans take those where they are. Each
+        the bound is not believed (a tracker's noise, or a hand faster than assumed: the
+        shield grows it by the bound all the same) and one of 0 changes nothing; the plans
+        take those where they are. Each
         forecast costs the plans a pass over the chunk, so their number is bounded whatever
         comes in (a flood of moving ids)."""
         speeds = {i: self.motion.speed(i) for i in moving}

@@ -56,12 +56,13 @@ COVER_PX = 1.0  # how far a moving zone's outline (`cover`) may lie beyond its c
 
 
 def cover(polygon: shapely.Geometry, tolerance: float = COVER_PX) -> shapely.Geometry:
-    """A convex outline of few vertices that covers `polygon`, at most 2 x `tolerance` px
-    beyond it: what a moving zone is checked as. It is grown by how far it may come anyway
-    (tens of px), so the hull and a px are nothing to the guarantee, and a few edges instead
-    of up to the cap's 64 keep the checks of many moving zones within a control period. The
-    hull is grown by `tolerance` and simplified by as much: a chord of a convex outline lies
-    within `tolerance` of the vertices it drops, so the hull stays inside."""
+    """A convex outline of few vertices that covers `polygon`, within 2 x `tolerance` px of
+    its convex hull: what a moving zone is checked as. It is grown by how far it may come
+    anyway (tens of px), so a px is nothing to the guarantee (a concave one, a hand's outline,
+    is taken as its hull: more than it covers, never less), and a few edges instead of up to
+    the cap's 64 keep the checks of many moving zones within a control period. The hull is
+    grown by `tolerance` and simplified by as much: a chord of a convex outline lies within
+    `tolerance` of the vertices it drops, so the hull stays inside."""
     grown = shapely.convex_hull(polygon).buffer(tolerance, join_style="mitre")
     return shapely.simplify(grown, tolerance)
 

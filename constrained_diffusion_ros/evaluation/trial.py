@@ -32,7 +32,6 @@ from constrained_diffusion_ros.evaluation.bags import (
     trial_steps,
 )
 from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_domain_id
-from constrained_diffusion_ros.nodes.zone_publisher import MAX_KEEPOUT_CELLS
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.planning.constraint_configs import load_configurations
 from msg_schemas import NAMESPACE, OPTIONAL_NODES, SERVICES, TOPICS
@@ -75,10 +74,14 @@ def seconds(text: str) -> float:
 
 
 def cell_size(text: str) -> float:
-    """A keep-out cell width the zone publisher takes: 0 (polygons), or from a mask of
-    MAX_KEEPOUT_CELLS a side up to MAX_KEEPOUT_CELL."""
+    """A keep-out cell width the zone publisher takes: 0 (polygons), or from a mask as many
+    cells a side as the caps allow (`MaskCaps.cells`) up to MAX_KEEPOUT_CELL. (Imported here,
+    when an argument is parsed: `--help` stays instant.)"""
+    from constrained_diffusion_ros.zones.grid import MaskCaps
+
     value = float(text)
-    finest = MAX_KEEPOUT_CELL / MAX_KEEPOUT_CELLS
+    side_cells = math.isqrt(MaskCaps.cells)
+    finest = MAX_KEEPOUT_CELL / side_cells
     if not (value == 0.0 or finest <= value <= MAX_KEEPOUT_CELL):  # NaN too
         raise argparse.ArgumentTypeError(f"{text} is not 0 or a cell width in [{finest:g}, "
                                          f"{MAX_KEEPOUT_CELL:g}] px")

@@ -8,8 +8,8 @@ mode flag to branch on:
   operating-system tuning a live loop needs (the interpreter's switch interval, a frozen
   collector, the clock's and the executor's priorities: runtime/os_scheduling.py asks for them).
 
-Each is handed the node, and uses what configure built on it: `observations`, `output`,
-`loop`, `robot`, `values`, `take` (the checked observation) and the status callbacks.
+Each is handed the node (a `PolicyNode`), and uses what configure built on it: `observations`,
+`output`, `loop`, `robot`, `values`, `take` (the checked observation) and the status callbacks.
 """
 
 from __future__ import annotations
@@ -17,10 +17,10 @@ from __future__ import annotations
 import gc
 import sys
 import time
-from typing import TYPE_CHECKING
 
 import numpy as np
 from rclpy.clock import Clock, ClockType
+from rclpy.lifecycle import Node as LifecycleNode
 
 from constrained_diffusion_ros.planning.chunk_loop import ChunkLoop
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
@@ -29,9 +29,6 @@ from constrained_diffusion_ros.runtime.live_loop import live_chunk_loop, loop_st
 from constrained_diffusion_ros.runtime.os_scheduling import request_fifo
 from msg_schemas.conversions import step_of_stamp
 from msg_schemas.text import one_line
-
-if TYPE_CHECKING:
-    from constrained_diffusion_ros.nodes.policy_node_impl import PolicyNode
 
 STATUS_PERIOD_S = 0.5  # realtime: status this often
 SWITCH_INTERVAL_S = 0.0002  # realtime: the clock thread waits at most this for another's GIL
@@ -44,7 +41,7 @@ class Lockstep:
     default_runtime = "torch"  # bit for bit the in-process evaluation
     realtime = False  # for ZoneIngest: masks built in line, batches taken as they come
 
-    def __init__(self, node: PolicyNode) -> None:
+    def __init__(self, node: LifecycleNode) -> None:
         self.node = node
         self.last_stamp = -1.0  # the observation answered last
         self.runs_restarted = 0  # a reset is a new episode here, not a restarted run
@@ -108,7 +105,7 @@ class Realtime:
     default_runtime = "onnxruntime"  # a plan at batch 1 is mostly torch's dispatch overhead
     realtime = True  # for ZoneIngest: masks built off the executor, zone batches paced
 
-    def __init__(self, node: PolicyNode) -> None:
+    def __init__(self, node: LifecycleNode) -> None:
         self.node = node
         self.latest_stamp = None  # the newest observation's stamp
         self.runs_restarted = 0  # observations whose stamp went back (a new run)

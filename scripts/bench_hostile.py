@@ -62,7 +62,8 @@ from pathlib import Path
 
 import numpy as np
 import shapely
-from bench_realtime import Client, add_condition_arguments, background_load
+from bench_realtime import add_condition_arguments, background_load
+from live_client import Client
 
 from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_domain_id
 from constrained_diffusion_ros.evaluation.live_checks import respects, square

@@ -25,7 +25,8 @@ import time
 from importlib.metadata import distribution
 from pathlib import Path
 
-from bench_realtime import Client, add_condition_arguments, background_load
+from bench_realtime import add_condition_arguments, background_load
+from live_client import Client
 
 from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_domain_id
 from constrained_diffusion_ros.paths import default_model_dir

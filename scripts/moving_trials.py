@@ -4,8 +4,9 @@ pusher's position or homing on it; the figures are taken from what the client ob
 pusher as the sim reports it, setpoints as received, the zone as it was published), so they
 hold the node to what a robot beside it would see, not to the node's own account.
 
-Kept apart from bench_realtime.py, which runs them: they take its client (`Client`) and its
-scene reset (`start_scene`) as arguments, so nothing here starts nodes or load.
+Kept apart from bench_realtime.py, which runs them: they take the benchmarks' client
+(`live_client.Client`) and its scene reset (`start_scene`) as arguments, so nothing here starts
+nodes or load.
 """
 
 from __future__ import annotations
@@ -15,18 +16,15 @@ import time
 from bisect import bisect_right
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 import shapely
+from live_client import Client
 
 from constrained_diffusion_ros.evaluation.runner import unavoidable
 from constrained_diffusion_ros.zones.geometry import ZoneSet
 from sim_bridge import AGENT_RADIUS
 from sim_bridge.scene import WORKSPACE_SIZE
-
-if TYPE_CHECKING:
-    from bench_realtime import Client
 
 KINDS = ("crossing", "homing")
 SIDE = 60.0  # px, the zone's side

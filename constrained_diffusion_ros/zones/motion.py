@@ -17,13 +17,14 @@ A zone measured faster than the bound, or faster than it was assumed to move bef
 update, broke the assumption: `over_bound` names the first, `exceeded` counts the second, so
 it is said, not trusted.
 
-An update that puts a zone farther than JUMP x the bound could have taken it is not motion but
-a re-placement (an id reused, a tracker that lost and found its object): the zone counts as
-placed anew there (`jumps`), standing still as a new zone does. Its updates go on being taken
-as placements until `max_gap_s` passes without a jump: an id that jumps is not trusted to
-move, so that ids scattered at random (a flood), some of whose updates look like motion by
-chance, are not taken for a swarm of hands each grown by the bound. Nothing could have kept a
-separation across a jump; the static guarantee holds for each placement.
+An update that puts a zone farther than JUMP x the bound could have taken it, and JUMP_PX
+besides, is not motion but a re-placement (an id reused, a tracker that lost and found its
+object): the zone counts as placed anew there (`jumps`), standing still as a new zone does.
+Its updates go on being taken as placements until `max_gap_s` passes without a jump: an id
+that jumps is not trusted to move, so that ids scattered at random (a flood), some of whose
+updates look like motion by chance, are not taken for a swarm of hands each grown by the
+bound. Nothing could have kept a separation across a jump; the static guarantee holds for
+each placement.
 """
 
 from __future__ import annotations
@@ -48,6 +49,9 @@ MAX_GAP_S = 1.0  # a longer pause between updates starts the estimate afresh
 SMOOTHING = 0.5  # weight of the newest displacement in the velocity
 MOVED_PX = 0.5  # a centroid displaced more between two updates: the zone moves
 JUMP = 3.0  # displaced faster than JUMP x the bound between two updates: re-placed, not moved
+# px a displacement may exceed that by and still be motion: stamps that come close together (a
+# tracker's jitter, a publisher behind on a busy machine) do not make a hand's step a jump
+JUMP_PX = 30.0
 # A moving zone's own bound: HEADROOM x the fastest it was measured at, at least FLOOR px/s:
 # a hand that sets off again after a pause, or speeds up by half, is still covered.
 HEADROOM = 1.5
@@ -117,7 +121,7 @@ class ZoneMotion:
             return
         displacement = float(np.linalg.norm(centroid - track.centroid))
         raw = displacement / (stamp - track.stamp)
-        jumped = displacement > MOVED_PX and raw > JUMP * self.speed_bound
+        jumped = displacement > JUMP_PX + JUMP * self.speed_bound * (stamp - track.stamp)
         if jumped or stamp - track.jumped_at < self.max_gap_s:  # placed anew
             self.jumps += jumped
             self.tracks[zone_id] = Track(stamp, centroid, np.zeros(2), 1,

@@ -16,6 +16,7 @@ from constrained_diffusion_ros.zones.motion import (
     COVER_PX,
     FLOOR,
     HEADROOM,
+    JUMP_PX,
     MAX_GAP_S,
     MovingZones,
     ZoneMotion,
@@ -213,3 +214,16 @@ def test_a_zone_scattered_faster_than_any_hand_is_placed_anew_not_grown() -> Non
     zones.upsert("scattered", square(360, 400), now=t, stamp=t)
     zones.upsert("scattered", square(370, 400), now=t + 0.05, stamp=t + 0.05)
     assert zones.motion.moving("scattered")
+
+
+def test_a_hand_whose_stamps_come_close_together_still_moves() -> None:
+    """Stamps 2 ms apart (a tracker's jitter, a publisher behind on a busy machine) make a
+    15 px step of a hand look like 7,500 px/s: within JUMP_PX it is still motion, not a jump
+    that would have the hand taken as standing still."""
+    motion = ZoneMotion(speed_bound=300.0)
+    stamps = [0.0, 0.05, 0.052, 0.1, 0.15, 0.152]
+    for k, stamp in enumerate(stamps):
+        motion.observe("hand", (100.0 + 15.0 * k, 100.0), stamp)
+    assert motion.jumps == 0 and motion.moving("hand")
+    motion.observe("hand", (100.0 + 15.0 * 6 + JUMP_PX + 1.0, 100.0), 0.152 + 1e-6)
+    assert motion.jumps == 1 and not motion.moving("hand")

@@ -76,6 +76,7 @@ from constrained_diffusion_ros.evaluation.launcher import (
     random_domain_id,
 )
 from constrained_diffusion_ros.evaluation.live_checks import (
+    disc_depth,
     respects,
     stops_outside,
     zone_in_path,
@@ -177,7 +178,7 @@ def print_timeline(client: Client, shape: shapely.Polygon, published: float, see
     them: the pusher (step, position, disc depth in the zone) and the setpoints (distance of
     the point to the zone less the pusher radius: negative is inside the grown zone)."""
     events = [(t, f"pusher step {step:4d} ({p[0]:6.1f}, {p[1]:6.1f}) depth "
-                  f"{AGENT_RADIUS - shape.distance(shapely.Point(*p)):6.2f} px")
+                  f"{disc_depth(shape, p):6.2f} px")
               for t, step, p in client.pushers[max(0, first_pusher):]]
     events += [(s.received, f"  setpoint ({s.point[0]:6.1f}, {s.point[1]:6.1f}) clear "
                             f"{shape.distance(shapely.Point(*s.point)) - AGENT_RADIUS:6.2f} px")
@@ -244,7 +245,7 @@ def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
     result.inside_zone += sum(shape.contains(shapely.Point(*p)) for p in later)
     result.nearest_after = min([result.nearest_after,
                                 *(shape.distance(shapely.Point(*p)) for p in later)])
-    depths = [AGENT_RADIUS - shape.distance(shapely.Point(*p))
+    depths = [disc_depth(shape, p)
               for _, _, p in client.pushers[n_pushers:]]
     # Sent before the zone was published, unknown to its placement: one that heads into it
     # runs into the zone before any answer can.

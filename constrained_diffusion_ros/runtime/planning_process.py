@@ -4,10 +4,11 @@ Denoising runs hundreds of torch calls with Python between them, all under the i
 lock, which the control clock and the zone callbacks need too; a child process has an
 interpreter of its own, so the node's threads never wait behind planning, and a planner that
 crashes does not take the node with it, as LeRobot's asynchronous inference keeps the policy in
-a server of its own. Three jobs, three modules: what the child runs and the messages both sides
-speak (planning_child.py), its scheduling and the watch that keeps idle priority from starving
-it (priority_watch.py), and here the node's side: jobs handed over, replies received, and the
-child started, given what it needs and started again when it dies.
+a server of its own. One job per module: what the child runs and the messages both sides speak
+(planning_child.py), its scheduling and the watch that keeps idle priority from starving it
+(priority_watch.py), which job goes to the child when (child_link.py), and here the
+supervision: the child started, given its weights, its replies received, and started again when
+it dies.
 """
 
 from __future__ import annotations
@@ -20,7 +21,6 @@ import socket
 import subprocess
 import threading
 from collections.abc import Callable
-from dataclasses import replace
 from multiprocessing.connection import Connection
 from pathlib import Path
 
@@ -28,10 +28,10 @@ import numpy as np
 
 from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult, Reply, Request
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
+from constrained_diffusion_ros.runtime.child_link import ChildLink
 from constrained_diffusion_ros.runtime.os_scheduling import may_leave_idle
-from constrained_diffusion_ros.runtime.planning_child import child_command, encode, send, unread
+from constrained_diffusion_ros.runtime.planning_child import child_command, encode, unread
 from constrained_diffusion_ros.runtime.priority_watch import WATCH_PERIOD_S, PriorityWatch
-from constrained_diffusion_ros.zones.area import RestrictedArea
 from constrained_diffusion_ros.zones.plugins import ZoneCheckError
 
 LOGGER = logging.getLogger(__name__)
@@ -76,22 +76,15 @@ class PlanningProcess:
         self._restart_limit, self._restart_delay = restart_limit, restart_delay
         self._restart_delay_max = restart_delay_max
         self.watch = PriorityWatch()  # how the child is scheduled, and the starvation watch
-        # What every child is given before its first job: the weights pickled once (a restart
-        # then costs the node no interpreter time), the planner and the seed in use.
+        # The weights are pickled once and given to every child before its first job (a
+        # restart then costs the node no interpreter time); the link keeps the planner, the
+        # seed and the job waiting for it.
         self._weights = encode(Request.POLICY, planner.policy)
-        self._planner_args = (planner.config, planner.robot)
-        self._seed = noise_seed
+        self._link = ChildLink(planner, noise_seed, self._fail, self._lost)
         package_root = str(Path(__file__).resolve().parents[2])
         self._environment = {**os.environ, "OMP_NUM_THREADS": str(threads),
                              "PYTHONPATH": os.pathsep.join(
                                  filter(None, [package_root, os.environ.get("PYTHONPATH")]))}
-        self._lock = threading.Lock()  # the state below and the sending end
-        self._connection: Connection | None = None  # to a child that has what it needs
-        self._in_flight: PlanJob | None = None
-        self._pending: PlanJob | None = None
-        self._sent_zones: RestrictedArea | None = None
-        self._gave_up = False
-        self._stopping = False
         self._stopped = threading.Event()  # wakes the supervisor out of a restart's wait
         self._in_a_row = 0  # restarts since the last plan arrived
         self.error: BaseException | None = None  # the last fault
@@ -112,74 +105,37 @@ class PlanningProcess:
 
     @property
     def priority(self) -> str:
-        """How the child is scheduled, as it reports it ("starting" until it does)."""
+        """How the child is scheduled, as it reports it ("starting" until its report comes)."""
         return self.watch.priority
 
     @property
     def ready(self) -> bool:
         """A child has what it needs to plan (jobs asked for before wait for it)."""
-        with self._lock:
-            return self._connection is not None
+        return self._link.ready
 
     @property
     def busy(self) -> bool:
         """A job is waiting or being planned."""
-        with self._lock:
-            return self._in_flight is not None or self._pending is not None
+        return self._link.busy
 
     def submit(self, job: PlanJob, cancel: bool = False) -> None:
-        with self._lock:
-            if self._gave_up:
-                return  # nothing plans any more: the node reports `error`
-            if self._connection is not None and self._in_flight is None:
-                self._start(job)
-                return
-            self._pending = job  # for the child to come, if none has what it needs
-            if cancel and self._in_flight is not None:  # under the lock: it reaches the child
-                self._tell_locked(Request.CANCEL, None)  # before the pending job can
+        self._link.submit(job, cancel)
 
     def use(self, planner: ConstrainedPlanner) -> None:
         """Plan with another configuration (of the same policy) from the next job on; a few
         hundred bytes, so the caller never waits for the child to finish a plan."""
-        with self._lock:
-            self._planner_args = (planner.config, planner.robot)
-            self._tell_locked(Request.PLANNER, self._planner_args)
+        self._link.use(planner)
 
     def reseed(self, noise_seed: int) -> None:
         """A new episode: the same noise as a fresh node from the next job on (like any
         message, it stops the plan in flight; a job waiting is the last episode's too). A child
         started again mid-episode starts from this seed again."""
-        with self._lock:
-            self._seed, self._pending = noise_seed, None
-            self._tell_locked(Request.SEED, noise_seed)
-
-    def _tell_locked(self, kind: Request, payload: object) -> None:
-        """Send to the child if one is ready; else the next child gets it (the caller holds
-        the lock)."""
-        if self._connection is None:
-            return
-        try:
-            send(self._connection, kind, payload)
-        except OSError as error:
-            self._lost_locked(f"cannot send {str(kind)!r} to the planning process: {error}")
-
-    def _lost_locked(self, message: str) -> None:
-        """A send failed: the child is gone, or the stream is cut mid-message. It is killed to
-        be sure, and the supervisor starts another; until then, what is sent waits for it."""
-        self._connection = None
-        self.failed = True
-        LOGGER.warning("planning process: %s", message)
-        with contextlib.suppress(OSError):
-            self._process.kill()
+        self._link.reseed(noise_seed)
 
     def shutdown(self, timeout: float = 5.0) -> None:
-        with self._lock:
-            self._stopping = True
-            process, connection, self._connection = self._process, self._connection, None
-            if connection is not None:
-                with contextlib.suppress(OSError, ValueError):
-                    send(connection, Request.STOP, None)
+        self._link.stop()
         self._stopped.set()
+        process = self._process
         try:
             process.wait(timeout)
         except subprocess.TimeoutExpired:
@@ -187,25 +143,13 @@ class PlanningProcess:
             process.wait(timeout)
         self._receiver.join(timeout)
 
-    def _start(self, job: PlanJob) -> None:
-        """Send a job to the ready child, its zones only when they are not the ones sent last
-        (the child keeps those, and what it derived from them); the caller holds the lock. A
-        job that cannot be pickled is reported in `error` and dropped (the next one is asked
-        for as usual); one that cannot be sent dies with the child."""
-        same = job.zones is not None and job.zones is self._sent_zones
-        try:
-            sent = encode(Request.JOB, (replace(job, zones=None) if same else job, same))
-        except (pickle.PicklingError, TypeError, AttributeError) as error:
-            self._fail(f"cannot send a plan to the planning process: {type(error).__name__}: "
-                       f"{error}")
-            return
-        self._in_flight = job  # already: a send that waits for a starved child counts too
-        try:
-            self._connection.send_bytes(sent)
-        except OSError as error:
-            self._lost_locked(f"cannot send a plan to the planning process: {error}")
-            return
-        self._sent_zones = job.zones
+    def _lost(self, message: str) -> None:
+        """A send failed: the child is gone, or the stream is cut mid-message. It is killed to
+        be sure, and the supervisor starts another; until then, what is sent waits for it."""
+        self.failed = True
+        LOGGER.warning("planning process: %s", message)
+        with contextlib.suppress(OSError):
+            self._process.kill()
 
     def _fail(self, message: str) -> None:
         """A fault, kept in `error`: a zone check's as the `ZoneCheckError` it was in the child
@@ -252,8 +196,7 @@ class PlanningProcess:
                 if death is None:
                     return  # shut down
             if self._in_a_row >= self._restart_limit:
-                with self._lock:
-                    self._gave_up, self._pending = True, None
+                self._link.give_up()
                 self._fail(f"{death}; {self._in_a_row} restarts in a row brought no plan: gave "
                            f"up, nothing plans any more")
                 return
@@ -268,8 +211,8 @@ class PlanningProcess:
             except OSError as error:  # out of memory or of processes: counted as a death
                 process, death = None, f"cannot start a planning process: {error}"
                 continue
-            with self._lock:
-                stopping = self._stopping
+            with self._link.lock:
+                stopping = self._link.stopping
                 if not stopping:
                     self._process = process
                     self.restarts += 1
@@ -291,28 +234,15 @@ class PlanningProcess:
             while unread(connection):  # whatever goes under the lock must not wait for it
                 if self._stopped.wait(0.005):
                     return False
-            with self._lock:
-                if self._stopping:
-                    return False
-                send(connection, Request.PLANNER, self._planner_args)
-                send(connection, Request.SEED, self._seed)
-                self._connection, self._sent_zones = connection, None
-                if self._pending is not None:
-                    job, self._pending = self._pending, None
-                    self._start(job)
+            return self._link.attach(connection)
         except OSError:
             return False
-        return True
 
     def _bury(self, process: subprocess.Popen, connection: Connection | None) -> str | None:
         """After a child's end: forget its connection and the job it was planning (the
         controller asks again when it finds the worker idle). What it died of, or None when it
         was told to stop."""
-        with self._lock:
-            if self._connection is connection:
-                self._connection = None
-            self._in_flight = None
-            stopping = self._stopping
+        stopping = self._link.detach(connection)
         if connection is not None:
             connection.close()
         try:
@@ -328,7 +258,7 @@ class PlanningProcess:
             try:
                 ready = connection.poll(WATCH_PERIOD_S)
                 # without the lock: a send in progress holds it
-                self.watch.check(self.pid, self._in_flight)
+                self.watch.check(self.pid, self._link.in_flight)
                 if not ready:
                     continue
                 message = connection.recv_bytes()
@@ -347,20 +277,16 @@ class PlanningProcess:
                 continue
             if kind == Reply.CHUNK:
                 self._in_a_row, self.failed = 0, False  # before the owner hears of it
-                if not self._stopping:
-                    self._offer(PlanResult(self._in_flight, np.asarray(payload), seconds))
+                if not self._link.stopping:
+                    self._offer(PlanResult(self._link.in_flight, np.asarray(payload),
+                                           seconds))
             elif kind == Reply.CANCELLED:
                 self.cancelled += 1
             else:
                 self._fail(payload)
                 if kind == Reply.ERROR:
                     continue  # a configuration or seed that failed: no job ended
-            with self._lock:  # not busy until the result is handed over
-                self._in_flight = None
-                if (self._pending is not None and self._connection is not None
-                        and not self._stopping):
-                    job, self._pending = self._pending, None
-                    self._start(job)
+            self._link.done()  # not busy until the result is handed over
 
     def _offer(self, result: PlanResult) -> None:
         try:

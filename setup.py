@@ -42,7 +42,7 @@ setup(
             f"zone_publisher = {PACKAGE}.nodes.zone_publisher:main",
             f"recorder = {PACKAGE}.nodes.recorder:main",
             f"view_node = {PACKAGE}.nodes.view_node:main",
-            f"recover_bag = {PACKAGE}.evaluation.bags:main",
+            f"recover_bag = {PACKAGE}.recording.bags:main",
             f"trial = {PACKAGE}.evaluation.trial:main",
             f"train_policy = {PACKAGE}.training.train:main",
             f"evaluate = {PACKAGE}.evaluation.evaluate:main",

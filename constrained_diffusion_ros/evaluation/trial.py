@@ -25,15 +25,15 @@ import numpy as np
 import yaml
 
 from constrained_diffusion_ros.cli import ArgumentParser, positive_int, run_command
-from constrained_diffusion_ros.evaluation.bags import (
+from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_domain_id
+from constrained_diffusion_ros.paths import config_dir, default_model_dir
+from constrained_diffusion_ros.planning.constraint_configs import load_configurations
+from constrained_diffusion_ros.recording.bags import (
     by_topic,
     read_timed_messages,
     read_unfinished,
     trial_steps,
 )
-from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_domain_id
-from constrained_diffusion_ros.paths import config_dir, default_model_dir
-from constrained_diffusion_ros.planning.constraint_configs import load_configurations
 from msg_schemas import NAMESPACE, OPTIONAL_NODES, SERVICES, TOPICS
 from msg_schemas.conversions import point_of, pose2d_of, step_of_stamp, zones_shown
 from sim_bridge import CONTROL_HZ

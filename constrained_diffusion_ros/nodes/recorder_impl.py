@@ -29,7 +29,7 @@ from rosbags.interfaces import (
 from rosbags.rosbag2 import Writer, WriterError
 from rosbags.typesys import Stores, get_typestore
 
-from constrained_diffusion_ros.evaluation import bags
+from constrained_diffusion_ros.recording import bags
 from msg_schemas import NAMESPACE, TOPICS, Endpoint, qos_profile
 from msg_schemas.node_support.parameters import Param, declare
 from msg_schemas.node_support.spin import log_matches

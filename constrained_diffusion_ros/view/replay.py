@@ -24,7 +24,7 @@ from msg_schemas import TOPICS
 def write_scene(messages: Iterable[tuple[int, str, object]], output: Path,
                 inflating: set[str], pusher_radius: float) -> int:
     """The scene after each pusher message of `messages` ((record time ns, topic, message), in
-    recording order, as `evaluation.bags.read_timed_messages` gives them) into `output`, logged
+    recording order, as `recording.bags.read_timed_messages` gives them) into `output`, logged
     at the record time; `inflating`: the configurations that grow the zones. Returns the frames
     written."""
     messages = list(messages)

@@ -14,9 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from constrained_diffusion_ros.evaluation import bags, benchmark, evaluate, latency, trial
+from constrained_diffusion_ros.evaluation import benchmark, evaluate, latency, trial
 from constrained_diffusion_ros.paths import config_dir
 from constrained_diffusion_ros.policy.weights import save_policy
+from constrained_diffusion_ros.recording import bags
 from constrained_diffusion_ros.training import train
 from constrained_diffusion_ros.training.dataset import load_demonstrations
 from msg_schemas.text import LINE_LIMIT, one_line

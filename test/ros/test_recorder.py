@@ -18,7 +18,7 @@ from rosbags.rosbag2 import Reader, ReaderError
 from rosbags.typesys import Stores, get_typestore
 from visualization_msgs.msg import MarkerArray
 
-from constrained_diffusion_ros.evaluation import bags
+from constrained_diffusion_ros.recording import bags
 from msg_schemas import TOPICS
 
 

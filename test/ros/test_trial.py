@@ -14,14 +14,14 @@ import yaml
 from ros_helpers import REPO, random_domain_id, stamp_step
 from rosbags.typesys import Stores, get_typestore
 
-from constrained_diffusion_ros.evaluation import bags
-from constrained_diffusion_ros.evaluation.bags import read_messages, read_trial
 from constrained_diffusion_ros.evaluation.runner import evaluate_configuration
 from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
 from constrained_diffusion_ros.evaluation.trial import bag_lacks
 from constrained_diffusion_ros.examples.camera import CameraZones
 from constrained_diffusion_ros.planning.constraint_configs import load_configurations
 from constrained_diffusion_ros.policy.weights import load_policy
+from constrained_diffusion_ros.recording import bags
+from constrained_diffusion_ros.recording.bags import read_messages, read_trial
 from msg_schemas import TOPICS
 
 SEED, STEPS = 100019, 16  # the tiny policy enters the left half there when unconstrained

@@ -24,7 +24,7 @@ import yaml
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from constrained_diffusion_ros.evaluation import bags
+from constrained_diffusion_ros.recording import bags
 
 try:
     from compression import zstd
@@ -227,7 +227,7 @@ def recover_in_process_of_its_own(bag: Path, tmp: Path, prelude: str = ""
                                   ) -> subprocess.CompletedProcess:
     """`recover_bag BAG` run by `in_process_of_its_own`; `prelude` runs before it."""
     code = (f"import sys\n{prelude}\n"
-            "from constrained_diffusion_ros.evaluation import bags\n"
+            "from constrained_diffusion_ros.recording import bags\n"
             "sys.exit(bags.main(sys.argv[1:]))\n")
     return in_process_of_its_own(code, bag, tmp)
 
@@ -346,7 +346,7 @@ def test_an_interrupted_recovery_leaves_the_bag_as_it_was(signum, tmp_path):
     prelude = (
         "import os, signal, time\n"
         f"signal.signal({int(signum)}, {default})\n"
-        "from constrained_diffusion_ros.evaluation import bags\n"
+        "from constrained_diffusion_ros.recording import bags\n"
         "complete = bags._complete_messages\n"
         "def interrupted(stream):\n"
         "    for index, record in enumerate(complete(stream)):\n"
@@ -389,7 +389,7 @@ def test_read_messages_refuses_a_bag_compressed_per_message(tmp_path):
     one ValueError line before a message is read."""
     bag = message_bomb(tmp_path / "bag")
     code = ("import sys\n"
-            "from constrained_diffusion_ros.evaluation import bags\n"
+            "from constrained_diffusion_ros.recording import bags\n"
             "try:\n"
             "    bags.read_messages(sys.argv[1])\n"
             "except ValueError as error:\n"
@@ -414,7 +414,7 @@ def test_recover_bag_refuses_a_bag_compressed_per_message(tmp_path):
     assert_refused(result, "compressed per message (compression_mode: message)")
     assert tree(tmp_path) == before
     usage = in_process_of_its_own(
-        "from constrained_diffusion_ros.evaluation import bags\nbags.main(['--help'])\n",
+        "from constrained_diffusion_ros.recording import bags\nbags.main(['--help'])\n",
         bag, tmp_path / "tmp").stdout
     assert "compression_mode: message" in " ".join(usage.split())
 
@@ -461,7 +461,7 @@ def test_recover_bag_reports_a_bag_it_cannot_read_and_recovers_nothing(fault, na
     exit 2, no recovery attempted and nothing changed."""
     bag = complete_bag(tmp_path / "bag")
     prelude = (fault() +
-               "from constrained_diffusion_ros.evaluation import bags\n"
+               "from constrained_diffusion_ros.recording import bags\n"
                "rewrite = bags._rewrite\n"
                "def attempted(*args):\n"
                "    print('recovery attempted')\n"

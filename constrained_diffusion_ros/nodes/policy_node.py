@@ -6,7 +6,8 @@ in-process evaluation bit for bit. `realtime`: a control clock thread publishes 
 tick (`rate_hz`) while a planning process plans the next chunk; a zone that arrives gets a safe
 setpoint before the next tick. Both run the evaluation's `ChunkLoop`. The node is wiring:
 observations come in through an `ObservationInput`, zones through a `ZoneIngest` (each owns its
-subscriptions, as tf2's listener does), `/diagnostics` go out through a `StatusReporter`.
+subscriptions, as tf2's listener does); `ZoneClearing` serves the clear service and expiry,
+`ZoneMarkers` shows the zones, `/diagnostics` go out through a `StatusReporter`.
 
 It fails safe: should its executor die (the thread that answers zones), `fail_safe` stops every
 setpoint, says ERROR and the process exits non-zero (`spin_node`); while the executor stalls,

@@ -5,6 +5,7 @@ or the planning core."""
 from __future__ import annotations
 
 import logging
+import time
 
 import numpy as np
 import torch
@@ -23,7 +24,9 @@ from constrained_diffusion_ros.nodes.policy_parameters import (
 )
 from constrained_diffusion_ros.nodes.policy_status import ReactionTimes, StatusReporter
 from constrained_diffusion_ros.nodes.setpoint_output import SetpointOutput
+from constrained_diffusion_ros.nodes.zone_clearing import ZoneClearing
 from constrained_diffusion_ros.nodes.zone_ingest import ZoneIngest
+from constrained_diffusion_ros.nodes.zone_markers import ZoneMarkers
 from constrained_diffusion_ros.planning.chunk_loop import ChunkLoop
 from constrained_diffusion_ros.planning.constraint_configs import load_configurations, weakens
 from constrained_diffusion_ros.planning.liveness import StandstillCounts
@@ -162,8 +165,11 @@ class PolicyNode(LifecycleNode):
         self.zone_ingest = ZoneIngest(
             self, self.zones, self.robot.workspace,
             MaskCaps(pieces=values["max_mask_pieces"], vertices=values["max_mask_vertices"]),
-            self._zones_changed, realtime=self.timing.realtime, marker_period_s=1.0 / self.rate_hz,
-            alive=self.output.beat)
+            self._zones_changed, realtime=self.timing.realtime, alive=self.output.beat)
+        # Markers at most once per tick in realtime, where a flood must not cost one a message.
+        self.zone_markers = ZoneMarkers(self, self.zones,
+                                        1.0 / self.rate_hz if self.timing.realtime else None)
+        ZoneClearing(self, self.zones, lambda: self._zones_changed(time.monotonic()))
         self.observations = ObservationInput(self, self.robot, self.timing.observe)
         self.standstills = StandstillCounts()  # the pusher parked at a zone's edge
         self.reaction = ReactionTimes()
@@ -188,7 +194,7 @@ class PolicyNode(LifecycleNode):
         if self._parameters_callback is not None:
             self.remove_on_set_parameters_callback(self._parameters_callback)
         self._built, self._parameters_callback = set(), None
-        self.loop = self.output = self.zone_ingest = None
+        self.loop = self.output = self.zone_ingest = self.zone_markers = None
 
     def fail_safe(self, reason: str) -> None:
         """The executor died: no setpoint after this, ERROR said (spin_node then exits)."""
@@ -279,6 +285,7 @@ class PolicyNode(LifecycleNode):
             self.zone_updates_within_reach += 1
         else:
             self.timing.zones_changed(received)
+        self.zone_markers.changed()
 
     # -- status -------------------------------------------------------------------------------
 

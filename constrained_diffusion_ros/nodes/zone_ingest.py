@@ -1,11 +1,11 @@
-"""Zones in from ROS for a node that obeys them, and their markers out.
+"""Zones in from ROS for a node that obeys them.
 
-`ZoneIngest` is a helper in the manner of tf2_ros's `TransformListener`: built with a node, it
-owns everything that brings zones to `LiveZones` (the zone subscriptions, the keep-out mask
-subscription and the thread that builds masks, the clear service and the file that remembers
-clears across restarts, expiry) and the zone markers that show them. The node hears of a change
-through one callback and reads the counts for its diagnostics; the zones themselves it reads
-from its `LiveZones`, as the planner does.
+`ZoneIngest` is a listener in the manner of tf2_ros's `TransformListener`: built with a node, it
+owns the subscriptions that fill the node's `LiveZones` (zone polygons, and keep-out masks with
+the thread that builds them) and nothing else. The node hears of a change through one callback
+and reads the counts for its diagnostics; the zones themselves it reads from its `LiveZones`,
+as the planner does. Markers that show the zones (zone_markers.py) and the ways zones leave
+without a message, the clear service and expiry (zone_clearing.py), are helpers of their own.
 
 Zones come in as id-keyed polygons, taken in batches as fast as they come and coalesced to the
 last message per id; a malformed one, or one over the caps, is refused with a warning while the
@@ -16,13 +16,10 @@ counted without being read, so no participant can hold the node with a message t
 
 from __future__ import annotations
 
-import json
-import os
 import time
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from geometry_msgs.msg import PolygonInstanceStamped
@@ -30,16 +27,14 @@ from nav_msgs.msg import OccupancyGrid
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy
-from std_srvs.srv import Trigger
-from visualization_msgs.msg import MarkerArray
 
 from constrained_diffusion_ros.runtime.mask_builder import MaskBuilder
 from constrained_diffusion_ros.zones.area import Bounds
 from constrained_diffusion_ros.zones.grid import BuiltMask, MaskCaps, build_mask
 from constrained_diffusion_ros.zones.live import BatchOutcome, LiveZones
-from msg_schemas import FRAME_ID, SERVICES, TOPICS, qos_profile
+from msg_schemas import FRAME_ID, TOPICS, qos_profile
 from msg_schemas.capped import mask_message_cap, read_capped, zone_message_cap
-from msg_schemas.conversions import stamp_seconds, zone_markers
+from msg_schemas.conversions import stamp_seconds
 from msg_schemas.text import one_line
 
 ZONE_BATCH_MAX = 10_000  # zone messages taken in one callback at most
@@ -62,36 +57,28 @@ class Unread:
 
 
 class ZoneIngest:
-    """Feeds `zones` from the node's zone topics, keep-out masks and clear service; calls
-    `on_change(received, within_reach)` (time.monotonic() the message that changed them came,
-    or now; whether the change was only moving zones staying within the reach assumed of them,
+    """Feeds `zones` from the node's zone topic and keep-out masks; calls
+    `on_change(received, within_reach)` (time.monotonic() the message that changed them came;
+    whether the change was only moving zones staying within the reach assumed of them,
     `BatchOutcome.within_reach`) on the node's executor thread whenever the zones in force
     change.
 
     Reads the node's `zone_lifetime` and `keepout_threshold` parameters at each message: they
     are settable at run time. `realtime`: masks are built on a thread of their own (zones and
-    observations are answered meanwhile), a burst of zone messages gets half the executor
-    thread at most, and markers go out at most every `marker_period_s`; else everything happens
-    in the callback, so a lockstep trial stays deterministic. `shutdown` ends the mask thread.
+    observations are answered meanwhile) and a burst of zone messages gets half the executor
+    thread at most; else everything happens in the callback, so a lockstep trial stays
+    deterministic. `shutdown` ends the mask thread.
     """
 
     def __init__(self, node: Node, zones: LiveZones, workspace: Bounds, mask_caps: MaskCaps,
                  on_change: Callable[[float, bool], None], realtime: bool,
-                 marker_period_s: float, alive: Callable[[], None] = lambda: None) -> None:
+                 alive: Callable[[], None] = lambda: None) -> None:
         self.node, self.zones, self.workspace, self.mask_caps = node, zones, workspace, mask_caps
         self.on_change, self.realtime, self.alive = on_change, realtime, alive
         self.counts = dict.fromkeys(COUNTS, 0)
         self.zone_cap = zone_message_cap(zones.max_vertices)  # bytes
         self.mask_cap = mask_message_cap(mask_caps.cells)
         self.last_refusal = ""  # why the last zone or mask was refused
-        # $ROS_HOME/constrained_diffusion_ros/<node>.cleared: the (id, stamp) of cleared zones,
-        # so their replays stay gone after a restart (exact messages: any clock, any publisher).
-        ros_home = Path(os.environ.get("ROS_HOME") or Path.home() / ".ros")
-        self.clear_file = ros_home / "constrained_diffusion_ros" / (
-            node.get_fully_qualified_name().strip("/").replace("/", "__") + ".cleared")
-        zones.cleared = self._remembered_clears()
-        self.marker_pub = node.create_publisher(MarkerArray, TOPICS["zone_markers"].name,
-                                                qos_profile(TOPICS["zone_markers"], "publisher"))
         # From any publisher: a volatile subscription matches every one, a transient-local one
         # also gets a latched publisher's history when the node (re)starts; a message both
         # deliver is taken once.
@@ -117,12 +104,6 @@ class ZoneIngest:
             self._mask_ready = node.create_guard_condition(self._on_mask_ready)
             self._built_mask: BuiltMask | None = None
             self.mask_builder = MaskBuilder(self._on_mask_built, mask_caps, workspace)
-            self._markers_due = False
-            node.create_timer(marker_period_s, self._on_markers_timer)
-        node.create_service(Trigger, SERVICES["clear_zones"].name, self._on_clear)
-        node.create_timer(EXPIRY_PERIOD_S, self._expire)
-        if zones.fixed is not None:
-            self.publish_markers()  # viewers see the plug-in check from the start
 
     def status(self) -> dict[str, object]:
         return {**self.counts, "zone_refusal": self.last_refusal}
@@ -182,7 +163,7 @@ class ZoneIngest:
         outcome = self.zones.apply(updates, self._now(), lifetime)
         self._count(outcome, refused)
         if outcome.changed:
-            self._changed(received, outcome.within_reach)
+            self.on_change(received, outcome.within_reach)
         finished = time.monotonic()
         self._paced_until = finished + (finished - max(received, self._paced_until))
         self.alive()
@@ -286,44 +267,9 @@ class ZoneIngest:
         self.node.get_logger().info(f"keep-out mask: {len(self.keepout_ids)} zone(s), built "
                                     f"in {1000 * built.seconds:.0f} ms")
         if outcome.changed:
-            self._changed()
+            self.on_change(time.monotonic(), False)
 
-    # -- clearing and expiry ----------------------------------------------------------------
-
-    def _expire(self) -> None:
-        if self.zones.expire(self._now()):
-            self._changed()
-
-    def _on_clear(self, _request, response):
-        count = len(self.zones)
-        self.zones.clear()
-        self._changed()
-        response.success, response.message = True, f"cleared {count} zones"
-        try:  # remembered across restarts: latched publishers replay what was cleared
-            self.clear_file.parent.mkdir(parents=True, exist_ok=True)
-            self.clear_file.write_text(json.dumps(list(self.zones.cleared)))
-        except OSError as error:
-            self.node.get_logger().warning(
-                f"cannot remember the clear in {self.clear_file} ({error.strerror}): a restart "
-                f"would revive the cleared zones that latched publishers replay")
-        return response
-
-    def _remembered_clears(self) -> dict[tuple, None]:
-        """The (id, stamp) of zones cleared by this node name in earlier runs."""
-        try:
-            pairs = json.loads(self.clear_file.read_text())
-            return {(zone_id, float(stamp)): None for zone_id, stamp in pairs}
-        except (OSError, ValueError, TypeError):
-            return {}
-
-    # -- what follows a change ----------------------------------------------------------------
-
-    def _changed(self, received: float | None = None, within_reach: bool = False) -> None:
-        self.on_change(time.monotonic() if received is None else received, within_reach)
-        if self.realtime:
-            self._markers_due = True
-        else:
-            self.publish_markers()
+    # -- counts -------------------------------------------------------------------------------
 
     def _count(self, outcome: BatchOutcome, refused_frames: int) -> None:
         counts = self.counts
@@ -336,19 +282,6 @@ class ZoneIngest:
             self.last_refusal = one_line(reason, 200)
             self.node.get_logger().warning(f"zone {zone_id} refused, zones in force kept: "
                                            f"{one_line(reason)}")
-
-    def _on_markers_timer(self) -> None:
-        if self._markers_due:  # viewers see zone changes at most once per tick
-            self._markers_due = False
-            self.publish_markers()
-
-    def publish_markers(self) -> None:
-        stamp = self.node.get_clock().now().to_msg()
-        namespace = "/".join((self.node.get_namespace().rstrip("/"), MARKER_NAMESPACE))
-        outlines = self.zones.outlines()
-        for k, polygon in enumerate(getattr(self.zones.fixed, "polygons", None) or []):
-            outlines[f"plugin/{k}"] = polygon  # a plug-in check that can show itself
-        self.marker_pub.publish(zone_markers(outlines, stamp, namespace))
 
     def _now(self) -> float:
         """s on the node's clock (sim time with use_sim_time), as zone stamps are."""

@@ -65,7 +65,7 @@ import shapely
 from bench_realtime import add_condition_arguments, background_load
 from live_client import Client
 
-from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_domain_id
+from constrained_diffusion_ros.evaluation.launcher import Stack
 from constrained_diffusion_ros.evaluation.live_checks import respects, square
 from constrained_diffusion_ros.paths import SOURCE_ROOT, default_model_dir
 from msg_schemas import TOPICS, qos_profile
@@ -240,7 +240,7 @@ class Bench:
 
     def __init__(self, args: argparse.Namespace, log_dir: Path) -> None:
         self.args, self.log_dir = args, log_dir
-        self.children: NodeProcesses | None = None
+        self.stack: Stack | None = None
         self.client: Client | None = None
         self.diagnostics: list[tuple[float, dict[str, str]]] = []  # (monotonic, values)
         self.starts = 0
@@ -249,11 +249,10 @@ class Bench:
         from diagnostic_msgs.msg import DiagnosticArray
 
         self.starts += 1
-        domain_id = random_domain_id()
         run_dir = self.log_dir / f"run{self.starts}"
         run_dir.mkdir(parents=True, exist_ok=True)
-        self.children = NodeProcesses(run_dir, domain_id)
-        self.client = client = Client(domain_id, self.children)
+        self.stack = Stack("bench_hostile", run_dir)
+        self.client = client = Client(self.stack)
         self.diagnostics = []
 
         def on_status(msg) -> None:
@@ -263,26 +262,26 @@ class Bench:
                                              {kv.key: kv.value for kv in status.values}))
         client.node.create_subscription(DiagnosticArray, TOPICS["diagnostics"].name, on_status,
                                         qos_profile(TOPICS["diagnostics"]))
-        self.children.start("sim_node", seed=FIRST_SEED, mode="realtime",
-                            rate_hz=self.args.rate_hz, autostart=False)
-        self.children.start("policy_node", model=self.args.model,
-                            configuration=self.args.configuration, mode="realtime",
-                            rate_hz=self.args.rate_hz)
+        self.stack.start("sim_node", seed=FIRST_SEED, mode="realtime",
+                         rate_hz=self.args.rate_hz, autostart=False)
+        self.stack.start("policy_node", model=self.args.model,
+                         configuration=self.args.configuration, mode="realtime",
+                         rate_hz=self.args.rate_hz)
         client.spin_until(client.discovered, self.args.startup_timeout,
                           "the nodes to discover each other")
 
     def stop(self) -> None:
         try:
-            if self.children is not None:
-                self.children.stop_all()
-        finally:
             if self.client is not None:
                 self.client.close()
-            self.children = self.client = None
+        finally:
+            if self.stack is not None:
+                self.stack.close()
+            self.stack = self.client = None
 
     @property
     def node(self):
-        return self.children.processes["policy_node"]
+        return self.stack.processes.processes["policy_node"]
 
     def spin_for(self, seconds: float) -> None:
         """Spins the client for `seconds` whether or not the nodes still run."""
@@ -307,8 +306,8 @@ class Bench:
     def prepare(self, seed: int) -> None:
         """No zones, a fresh scene, a plan running, then QUIET_S of setpoints."""
         client = self.client
-        if self.children.failed():
-            raise RuntimeError(self.children.failed())
+        if self.stack.failed():
+            raise RuntimeError(self.stack.failed())
         client.call(client.clear, client.Trigger.Request(), "clear zones")
         client.reset_to(seed)
         begin = time.monotonic()
@@ -512,9 +511,9 @@ def run_condition(args: argparse.Namespace, condition: str, payloads: dict[str, 
             for key in args.attacks:
                 outcome = results.setdefault((condition, key), Outcome())
                 for repeat in range(args.repeats):
-                    if bench.children.failed():  # the last attack killed it: a fresh stack
+                    if bench.stack.failed():  # the last attack killed it: a fresh stack
                         outcome.notes.append(f"restarted before repeat {repeat + 1}: "
-                                             f"{bench.children.failed()}")
+                                             f"{bench.stack.failed()}")
                         bench.stop()
                         bench.start()
                     started = time.monotonic()

@@ -71,10 +71,7 @@ from moving_trials import (
     run_moving_trials,
 )
 
-from constrained_diffusion_ros.evaluation.launcher import (
-    NodeProcesses,
-    random_domain_id,
-)
+from constrained_diffusion_ros.evaluation.launcher import Stack
 from constrained_diffusion_ros.evaluation.live_checks import (
     disc_depth,
     respects,
@@ -438,7 +435,7 @@ def background_load(count: int) -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def watching(children: NodeProcesses, on: bool) -> Iterator[dict[str, int]]:
+def watching(stack: Stack, on: bool) -> Iterator[dict[str, int]]:
     """view_node on a free port and a WebSocket client (a thread) subscribed to every channel
     it serves, counting what it receives, while the trials run; nothing if not `on`."""
     counts = {"frames": 0, "bytes": 0}
@@ -453,7 +450,7 @@ def watching(children: NodeProcesses, on: bool) -> Iterator[dict[str, int]]:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
-    children.start("view_node", port=port)
+    stack.start("view_node", port=port)
     stop = threading.Event()
 
     def client() -> None:
@@ -500,20 +497,19 @@ def run_condition(args: argparse.Namespace, loaded: bool) -> None:
     print(f"\n== {label}, {os.cpu_count()} cores, {args.rate_hz:g} Hz ==", flush=True)
     with background_load(args.load if loaded else 0):
         for index, configuration in enumerate(args.configurations):
-            domain_id = random_domain_id()
             base = Path(args.log_dir or tempfile.mkdtemp(prefix="bench_realtime_"))
             log_dir = base / f"{label[:6]}_{configuration}"
             log_dir.mkdir(parents=True, exist_ok=True)
-            children = NodeProcesses(log_dir, domain_id)
-            client = Client(domain_id, children)
+            stack = Stack("bench_realtime", log_dir)
+            client = Client(stack)
             try:
-                children.start("sim_node", seed=FIRST_SEED, mode="realtime",
+                stack.start("sim_node", seed=FIRST_SEED, mode="realtime",
                                rate_hz=args.rate_hz, autostart=False)
                 extra = {} if args.executor_priority is None else {
                     "executor_priority": args.executor_priority}
                 if args.every_tick:
                     extra["replan_every_tick"] = True
-                children.start("policy_node", model=args.model, configuration=configuration,
+                stack.start("policy_node", model=args.model, configuration=configuration,
                                mode="realtime", rate_hz=args.rate_hz,
                                planning_process=args.planning_process == "true", **extra)
                 client.spin_until(client.discovered, args.startup_timeout,
@@ -521,8 +517,9 @@ def run_condition(args: argparse.Namespace, loaded: bool) -> None:
                 result = Condition()
                 before = cpu_times()
                 attempt = 0  # scenes without room for a zone are skipped; the next seed is tried
-                with flooding(domain_id, args.trial_flood_hz, args.trial_flood_vertices), \
-                        watching(children, args.view) as viewed:
+                with flooding(stack.domain_id, args.trial_flood_hz,
+                              args.trial_flood_vertices), \
+                        watching(stack, args.view) as viewed:
                     while result.trials < args.trials and attempt < MAX_ATTEMPTS * args.trials:
                         run_trial(client, attempt, FIRST_SEED + attempt, args, result)
                         attempt += 1
@@ -557,8 +554,8 @@ def run_condition(args: argparse.Namespace, loaded: bool) -> None:
                 if index == 0 and args.flood_hz > 0:
                     flood(client, args)
             finally:
-                children.stop_all()
                 client.close()
+                stack.close()
         if loaded and not args.no_trial:
             started = time.monotonic()
             done = subprocess.run([sys.executable, "-m", "constrained_diffusion_ros.evaluation"

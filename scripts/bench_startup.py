@@ -28,7 +28,7 @@ from pathlib import Path
 from bench_realtime import add_condition_arguments, background_load
 from live_client import Client
 
-from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_domain_id
+from constrained_diffusion_ros.evaluation.launcher import Stack
 from constrained_diffusion_ros.paths import default_model_dir
 
 
@@ -48,15 +48,14 @@ def build_parser() -> argparse.ArgumentParser:
 def one_start(args: argparse.Namespace, log_dir: Path) -> tuple[float, float, str]:
     """Seconds from starting the policy node to the first setpoint and to the first plan; its
     start-up log line."""
-    domain_id = random_domain_id()
-    children = NodeProcesses(log_dir, domain_id)
-    client = Client(domain_id, children)
+    stack = Stack("bench_startup", log_dir)
+    client = Client(stack)
     try:
-        children.start("sim_node", mode="realtime", autostart=True)
+        stack.start("sim_node", mode="realtime", autostart=True)
         client.spin_until(lambda: len(client.pushers) > 0, args.timeout, "the simulator")
         started = time.monotonic()
-        _, log = children.start("policy_node", model=args.model, mode="realtime",
-                                configuration=args.configuration)
+        log = stack.start("policy_node", model=args.model, mode="realtime",
+                          configuration=args.configuration)
         client.spin_until(lambda: len(client.setpoints) > 0, args.timeout, "a setpoint")
         first = client.setpoints[0].received - started
         client.spin_until(lambda: len(client.plan_times) > 0, args.timeout, "a plan")
@@ -65,7 +64,7 @@ def one_start(args: argparse.Namespace, log_dir: Path) -> tuple[float, float, st
         return first, plan, line
     finally:
         client.close()
-        children.stop_all()
+        stack.close()
 
 
 def help_times(args: argparse.Namespace) -> int:

@@ -14,18 +14,16 @@ import struct
 import sys
 import tempfile
 import time
+from pathlib import Path
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PolygonInstanceStamped
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from websockets.sync.client import connect
 
-from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_domain_id
+from constrained_diffusion_ros.evaluation.launcher import Stack
 from constrained_diffusion_ros.view.layout import view_channels
 from constrained_diffusion_ros.view.zone_requests import ZONE_REQUEST_SCHEMA_NAME
-from msg_schemas import NAMESPACE, TOPICS, qos_profile
+from msg_schemas import TOPICS, qos_profile
 from msg_schemas.node_support.spin import spin_until
 
 GARBAGE_EVERY = 7  # one request in this many is not JSON (7: every id gets good ones too)
@@ -43,13 +41,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--ids", type=int, default=30, help="distinct zone ids asked for")
     parser.add_argument("--settle", type=float, default=5.0, help="s to listen after it")
     args = parser.parse_args(argv)
-    domain_id, port = random_domain_id(), free_port()
-    children = NodeProcesses(tempfile.mkdtemp(prefix="bench_view_flood_"), domain_id)
-    context = Context()
-    rclpy.init(context=context, domain_id=domain_id)
-    node = rclpy.create_node("bench_view_flood", namespace=NAMESPACE, context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
+    port = free_port()
+    stack = Stack("bench_view_flood", Path(tempfile.mkdtemp(prefix="bench_view_flood_")))
+    node, executor = stack.node, stack.executor
     published, statuses = [], []
     node.create_subscription(PolygonInstanceStamped, TOPICS["zones"].name,
                              lambda msg: published.append(msg.polygon.id),
@@ -60,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
                              qos_profile(TOPICS["diagnostics"]))
 
     try:
-        children.start("view_node", port=port)
+        stack.start("view_node", port=port)
         spin_until(executor, lambda: node.count_publishers(TOPICS["zones"].name) >= 1, 30.0)
         ws = None
         for _ in range(100):
@@ -93,10 +87,9 @@ def main(argv: list[str] | None = None) -> int:
               f" ({counts.get('zone_refusal', '')})")
         print(f"zone messages on ROS: {len(published)}, {len(set(published))} distinct ids "
               f"(coalesced per id at each frame)")
-        print(f"view process still running: {children.failed() is None}")
+        print(f"view process still running: {stack.failed() is None}")
     finally:
-        children.stop_all()
-        rclpy.try_shutdown(context=context)
+        stack.close()
     return 0
 
 

@@ -1,7 +1,7 @@
-"""The live benchmarks' own ROS client (`Client`): observes the stack's topics, drops zones and
-resets the sim, from a random ROS domain of the benchmark's own; and `start_scene`, a reset that
-waits for the new scene's first plan. bench_realtime, moving_trials, bench_hostile and
-bench_startup drive the nodes through it."""
+"""The live benchmarks' own ROS client (`Client`): observes the topics of a stack of nodes
+(`launcher.Stack`, the harness `trial` runs on too), drops zones and resets the sim; and
+`start_scene`, a reset that waits for the new scene's first plan. bench_realtime,
+moving_trials, bench_hostile and bench_startup drive the nodes through it."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from typing import NamedTuple
 import numpy as np
 import shapely
 
-from constrained_diffusion_ros.evaluation.launcher import NodeProcesses
+from constrained_diffusion_ros.evaluation.launcher import Stack
 from msg_schemas import NAMESPACE, SERVICES, TOPICS, qos_profile
 from msg_schemas.conversions import path_of, point_of, step_of_stamp, zone_message
 from sim_bridge import CONTROL_HZ
@@ -30,30 +30,25 @@ class Setpoint(NamedTuple):
 
 
 class Client:
-    """The benchmark's own rclpy node: observes the topics, drops zones, resets the sim.
+    """On the stack's client node: observes the topics, drops zones, resets the sim.
 
     Setpoints are taken on a thread of their own (a second node with its own executor), as a
     robot driver would take them: they do not wait behind this client's bookkeeping of plans,
     markers and diagnostics on the main thread.
     """
 
-    def __init__(self, domain_id: int, children: NodeProcesses) -> None:
+    def __init__(self, stack: Stack) -> None:
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PointStamped, PolygonInstanceStamped
         from nav_msgs.msg import Path as PathMsg
-        from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.parameter_client import AsyncParameterClient
         from std_srvs.srv import Trigger
         from visualization_msgs.msg import MarkerArray
 
-        self.children = children
-        self.context = Context()
-        rclpy.init(context=self.context, domain_id=domain_id)
-        self.node = rclpy.create_node("bench_realtime", namespace=NAMESPACE, context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
+        self.stack, self.context = stack, stack.context
+        self.node, self.executor = stack.node, stack.executor
         self.setpoints: list[Setpoint] = []  # appended by the listener thread only
         self.pushers: list[tuple[float, int, np.ndarray]] = []
         self.plan: np.ndarray | None = None
@@ -116,10 +111,7 @@ class Client:
                         shapely.union_all(polygons))
 
     def spin_until(self, condition, timeout: float, what: str) -> None:
-        from msg_schemas.node_support.spin import spin_until
-
-        spin_until(self.executor, condition, timeout, period_s=0.005,
-                   failed=self.children.failed, what=what)
+        self.stack.wait_for(condition, what, timeout, period_s=0.005)
 
     def spin_for(self, seconds: float) -> None:
         deadline = time.monotonic() + seconds
@@ -142,14 +134,10 @@ class Client:
         self.zones.publish(zone_message(zone_id, vertices, self.node.get_clock().now().to_msg()))
 
     def close(self) -> None:
-        import rclpy
-
+        """The setpoint listener stopped; the stack closes the rest."""
         self.listener_executor.shutdown()
         self.listener_thread.join(timeout=5.0)
-        self.executor.shutdown()
         self.listener.destroy_node()
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
 
 
 

@@ -1,4 +1,5 @@
-"""Node processes for a trial, a benchmark or a test: one launcher, as a launch file would do it.
+"""Node processes for a trial, a benchmark or a test: one launcher, as a launch file would do it,
+and one harness that drives them (`Stack`).
 
 Each caller picks the ROS domain its nodes run in (so runs side by side do not hear each
 other) and every process gets its compute threads set on purpose: torch takes one thread per
@@ -14,6 +15,8 @@ import random
 import signal
 import subprocess
 import sys
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 NODES = {  # executable name -> python module (the console scripts of setup.py)
@@ -109,6 +112,95 @@ class NodeProcesses:
 
     def __exit__(self, *_exc: object) -> None:
         self.stop_all()
+
+
+class Stack:
+    """A stack of node processes and a client node of the caller's own that drives them, in
+    one ROS domain: what `trial` and the live benchmarks start, watch and stop.
+
+    `wait_for` spins the client until a condition holds, and fails at once, naming it, when a
+    node process has exited (a wait on a dead node does not sit out its timeout);
+    `transition` takes a managed node through a lifecycle transition, as nav2's lifecycle
+    manager asks; `close` stops the processes and the client. The client node is `node`
+    (namespace /pusht) on `executor`, in `context`."""
+
+    def __init__(self, name: str, log_dir: Path, domain_id: int | None = None) -> None:
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+
+        from msg_schemas import NAMESPACE
+
+        self.domain_id = random_domain_id() if domain_id is None else domain_id
+        self.processes = NodeProcesses(log_dir, self.domain_id)
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=self.domain_id)
+        self.node = rclpy.create_node(name, namespace=NAMESPACE, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.logs: dict[str, Path] = {}  # node name -> its log file
+        self._lifecycle: dict[str, object] = {}  # node name -> its change_state client
+
+    def start(self, name: str, **parameters: object) -> Path:
+        """Start node `name` (`NodeProcesses.start`'s arguments); its log file."""
+        _, self.logs[name] = self.processes.start(name, **parameters)
+        return self.logs[name]
+
+    def failed(self) -> str | None:
+        return self.processes.failed()
+
+    def wait_for(self, condition: Callable[[], bool], what: str, timeout_s: float | None = None,
+                 *, deadline: float | None = None, period_s: float = 0.02) -> None:
+        """Spin the client until `condition()` holds; RuntimeError "timed out waiting for
+        <what>" past `timeout_s` from now or the time.monotonic() `deadline`, or naming the
+        node process that exited."""
+        from msg_schemas.node_support.spin import spin_until
+
+        spin_until(self.executor, condition, timeout_s, deadline=deadline, period_s=period_s,
+                   failed=self.failed, what=what)
+
+    def call(self, client, request, what: str, timeout_s: float = 30.0,
+             deadline: float | None = None):
+        """A service's answer, once the service is there (`wait_for`'s failures)."""
+        if deadline is None:
+            deadline = time.monotonic() + timeout_s
+        self.wait_for(client.service_is_ready, f"the {what} service", deadline=deadline)
+        answer = client.call_async(request)
+        self.wait_for(answer.done, what, deadline=deadline)
+        return answer.result()
+
+    def transition(self, label: str, node: str = "policy_node",
+                   deadline: float | None = None) -> None:
+        """Node `node` through lifecycle transition `label` (configure, activate, ...);
+        ValueError naming its log if it refuses."""
+        from lifecycle_msgs.srv import ChangeState
+
+        if node not in self._lifecycle:
+            self._lifecycle[node] = self.node.create_client(ChangeState,
+                                                            f"{node}/change_state")
+        request = ChangeState.Request()
+        request.transition.label = label
+        answer = self.call(self._lifecycle[node], request, f"{node} to {label}",
+                           deadline=deadline)
+        if not answer.success:
+            raise ValueError(f"{node} could not {label} (see {self.logs.get(node, 'its log')})")
+
+    def close(self) -> None:
+        """Stop every node process (at once, SIGINT then kill), then the client."""
+        import rclpy
+
+        try:
+            self.processes.stop_all()
+        finally:
+            self.executor.shutdown()
+            self.node.destroy_node()
+            rclpy.try_shutdown(context=self.context)
+
+    def __enter__(self) -> Stack:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
 
 
 def _wait(process: subprocess.Popen, timeout: float) -> int:

@@ -18,6 +18,7 @@ import math
 import re
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -25,7 +26,7 @@ import numpy as np
 import yaml
 
 from constrained_diffusion_ros.cli import ArgumentParser, positive_int, run_command
-from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_domain_id
+from constrained_diffusion_ros.evaluation.launcher import Stack
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.planning.constraint_configs import load_configurations
 from constrained_diffusion_ros.recording.bags import (
@@ -34,7 +35,7 @@ from constrained_diffusion_ros.recording.bags import (
     read_unfinished,
     trial_steps,
 )
-from msg_schemas import NAMESPACE, OPTIONAL_NODES, SERVICES, TOPICS
+from msg_schemas import OPTIONAL_NODES, SERVICES, TOPICS
 from msg_schemas.conversions import point_of, pose2d_of, step_of_stamp, zones_shown
 from sim_bridge import CONTROL_HZ
 
@@ -126,20 +127,63 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def run_trial(args: argparse.Namespace) -> dict:
-    import rclpy
-    from diagnostic_msgs.msg import DiagnosticArray
-    from geometry_msgs.msg import PointStamped, PoseStamped
-    from lifecycle_msgs.srv import ChangeState
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
-    from std_srvs.srv import Trigger
-    from visualization_msgs.msg import MarkerArray
+class TrialListener:
+    """What the trial hears on its client node: the pusher, block and setpoint of every step
+    (`received`, by control step), every contract topic heard at all (`heard`: the bag must
+    hold each before the nodes stop), the zones the policy shows (`zones_in_force`, one count
+    per markers message) and what it said of a failed plug-in check (`zone_check_errors`)."""
 
+    KEPT = (("pusher", "pusher"), ("block_pose", "block"), ("setpoint", "setpoint"))
+
+    def __init__(self, node) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
+        from visualization_msgs.msg import MarkerArray
+
+        from msg_schemas import qos_profile
+
+        self.received: dict[str, dict[int, object]] = {kind: {} for _, kind in self.KEPT}
+        self.heard: set[str] = set()
+        self.zones_in_force: list[int] = []
+        self.zone_check_errors: list[str] = []
+        for topic, kind in self.KEPT:
+            node.create_subscription(TOPICS[topic].message_class(), TOPICS[topic].name,
+                                     lambda msg, kind=kind: self._keep(kind, msg),
+                                     qos_profile(TOPICS[topic], "recorder"))
+        for endpoint in TOPICS.values():
+            node.create_subscription(endpoint.message_class(), endpoint.name,
+                                     self._hear(endpoint.resolved()),
+                                     qos_profile(endpoint, "recorder"), raw=True)
+        node.create_subscription(MarkerArray, TOPICS["zone_markers"].name,
+                                 lambda msg: self.zones_in_force.append(zones_shown(msg)),
+                                 qos_profile(TOPICS["zone_markers"]))
+        node.create_subscription(DiagnosticArray, TOPICS["diagnostics"].name, self._diagnosed,
+                                 qos_profile(TOPICS["diagnostics"], "recorder"))
+
+    def _hear(self, topic: str) -> Callable[[bytes], None]:
+        return lambda _data: self.heard.add(topic)
+
+    def _keep(self, kind: str, msg) -> None:
+        self.received[kind][step_of_stamp(msg.header.stamp, CONTROL_HZ)] = msg
+
+    def _diagnosed(self, msg) -> None:
+        for status in msg.status:
+            said = next((kv.value for kv in status.values if kv.key == "zone_check_error"), "")
+            if said and said not in self.zone_check_errors:
+                self.zone_check_errors.append(said)
+
+    def complete(self, steps: int) -> bool:
+        """Every step's pusher and block (0 .. steps) and setpoint (0 .. steps - 1) arrived:
+        topics arrive in no fixed order."""
+        received = self.received
+        return (all(t in received["pusher"] and t in received["block"] for t in range(steps + 1))
+                and all(t in received["setpoint"] for t in range(steps)))
+
+
+def checked_output(args: argparse.Namespace):
+    """The scenario asked for (None: none) and the trial's new output directory, after what
+    the policy node would refuse is refused here first: one line, no directory made."""
     from constrained_diffusion_ros.evaluation.scenarios import load_scenarios
     from constrained_diffusion_ros.policy.weights import load_policy
-    from msg_schemas import qos_profile
-    from msg_schemas.node_support.spin import spin_until
 
     scenarios = load_scenarios(args.scenarios_file)
     scenario = scenarios.get(args.scenario) if args.scenario != "none" else None
@@ -147,7 +191,6 @@ def run_trial(args: argparse.Namespace) -> dict:
         raise ValueError(f"unknown scenario {args.scenario!r}; known: {', '.join(scenarios)}")
     if args.keepout_grid and (scenario is None or scenario.plugin):
         raise ValueError("--keepout-grid needs a scenario of zones (not a plug-in)")
-    # What the policy node would refuse, refused here first: one line, no output directory.
     configurations = load_configurations(args.configurations_file)
     if args.configuration not in configurations:
         raise ValueError(f"unknown configuration {args.configuration!r}; known: "
@@ -158,151 +201,104 @@ def run_trial(args: argparse.Namespace) -> dict:
         raise ValueError(f"{output} exists already; choose another --output (trials are never "
                          "overwritten)")
     output.mkdir(parents=True)
+    return scenario, output
+
+
+def start_nodes(stack: Stack, scenario, args: argparse.Namespace, output: Path,
+                metadata_file: Path) -> str | None:
+    """Recorder, simulator (lockstep, waiting for its reset), the scenario's zones (a topic's
+    publisher, or the policy's plug-in check) and the policy node, left unconfigured; the
+    topic the zones come on (None: no zone topic)."""
+    stack.start("recorder", output=output / "bag", metadata_file=metadata_file)
+    stack.start("sim_node", seed=args.seed, mode="lockstep", max_steps=args.steps,
+                autostart=False)
+    plug_in, zone_topic = {}, None
+    if scenario is not None and scenario.plugin:
+        plug_in = {"restricted_area": scenario.plugin["class"],
+                   "restricted_area_parameters": yaml.safe_dump(
+                       scenario.plugin.get("parameters") or {}, default_flow_style=True)}
+    elif scenario is not None:
+        zone_topic = TOPICS["keepout_mask" if args.keepout_grid else "zones"].name
+        stack.start("zone_publisher", scenario=args.scenario,
+                    scenarios_file=args.scenarios_file, keepout_resolution=args.keepout_grid)
+    stack.start("policy_node", threads=POLICY_THREADS, torch_threads=POLICY_THREADS,
+                model=args.model, configuration=args.configuration,
+                configurations_file=args.configurations_file, autostart=False, **plug_in)
+    return zone_topic
+
+
+def discovered(stack: Stack, zone_topic: str | None, zone_kind: str) -> bool:
+    """The graph has every node the trial needs: setpoints published and taken, the pusher
+    taken, the reset service, and the zones' publisher and subscriber (counted without the
+    trial's own subscriptions)."""
+    node = stack.node
+
+    def subscribed(topic: str) -> bool:
+        own = sum(s.topic_name == TOPICS[topic].resolved() for s in node.subscriptions)
+        needed = set(TOPICS[topic].subscribers) - set(OPTIONAL_NODES)
+        return node.count_subscribers(TOPICS[topic].name) - own >= len(needed)
+
+    ready = (node.count_publishers(TOPICS["setpoint"].name) >= 1 and subscribed("setpoint")
+             and subscribed("pusher"))
+    if zone_topic is not None:
+        ready &= node.count_publishers(zone_topic) >= 1 and subscribed(zone_kind)
+    return ready
+
+
+def publishers_matched(stack: Stack, recorded_first: list[str]) -> bool:
+    """Both sides of discovery have matched (the nodes' logs say so): the recorder the
+    publishers the trial's figures come from, and the simulator's and the policy's publishers
+    every subscriber the graph shows. The graph alone is not enough: a recorder that matches a
+    publisher late misses what it sent before (a short trial's first setpoints), and a
+    publisher that has not matched the recorder yet sends the first setpoint past the bag."""
+    logs = stack.logs
+    return (all(matched(logs["recorder"], topic, "publisher") >= 1 for topic in recorded_first)
+            and all(matched(logs[name], topic, "subscriber")
+                    >= stack.node.count_subscribers(TOPICS[topic].name)
+                    for name, topic in (("policy_node", "setpoint"), ("sim_node", "pusher"),
+                                        ("sim_node", "block_pose"))))
+
+
+def run_trial(args: argparse.Namespace) -> dict:
+    from std_srvs.srv import Trigger
+
+    scenario, output = checked_output(args)
     metadata_file = output / "trial.json"
     metadata = {"scenario": args.scenario, "configuration": args.configuration,
                 "seed": args.seed, "steps": args.steps, "model": str(args.model),
                 "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
     metadata_file.write_text(json.dumps(metadata, indent=2))
 
-    domain_id = random_domain_id() if args.domain_id is None else args.domain_id
-    context = Context()
-    rclpy.init(context=context, domain_id=domain_id)
-    node = rclpy.create_node("trial", namespace=NAMESPACE, context=context)
-    received: dict[str, dict[int, object]] = {"pusher": {}, "block": {}, "setpoint": {}}
-
-    def keep(kind: str):
-        def callback(msg) -> None:
-            received[kind][step_of_stamp(msg.header.stamp, CONTROL_HZ)] = msg
-        return callback
-
-    for topic, kind, msg_type in (("pusher", "pusher", PointStamped),
-                                  ("block_pose", "block", PoseStamped),
-                                  ("setpoint", "setpoint", PointStamped)):
-        node.create_subscription(msg_type, TOPICS[topic].name, keep(kind),
-                                 qos_profile(TOPICS[topic], "recorder"))
-    # Every contract topic heard: the bag must hold each of them before the nodes stop.
-    heard: set[str] = set()
-
-    def hear(topic: str):
-        return lambda _data: heard.add(topic)
-
-    for endpoint in TOPICS.values():
-        node.create_subscription(endpoint.message_class(), endpoint.name,
-                                 hear(endpoint.resolved()), qos_profile(endpoint, "recorder"),
-                                 raw=True)
-    zones_in_force: list[int] = []
-    node.create_subscription(
-        MarkerArray, TOPICS["zone_markers"].name,
-        lambda msg: zones_in_force.append(zones_shown(msg)),
-        qos_profile(TOPICS["zone_markers"]))
-    zone_check_errors: list[str] = []  # what the policy said of its plug-in check, if it failed
-
-    def diagnosed(msg) -> None:
-        for status in msg.status:
-            said = next((kv.value for kv in status.values if kv.key == "zone_check_error"), "")
-            if said and said not in zone_check_errors:
-                zone_check_errors.append(said)
-
-    node.create_subscription(DiagnosticArray, TOPICS["diagnostics"].name, diagnosed,
-                             qos_profile(TOPICS["diagnostics"], "recorder"))
-    reset = node.create_client(Trigger, SERVICES["reset"].name)
-    lifecycle = node.create_client(ChangeState, SERVICES["change_state"].name)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-
-    children = NodeProcesses(output, domain_id)
+    stack = Stack("trial", output, args.domain_id)
+    listener = TrialListener(stack.node)
+    reset = stack.node.create_client(Trigger, SERVICES["reset"].name)
     deadline = time.monotonic() + args.timeout
+    zone_kind = "keepout_mask" if args.keepout_grid else "zones"
     try:
-        _, recorder_log = children.start("recorder", output=output / "bag",
-                                         metadata_file=metadata_file)
-        _, sim_log = children.start("sim_node", seed=args.seed, mode="lockstep",
-                                    max_steps=args.steps, autostart=False)
-        plug_in, zone_topic = {}, None  # a plug-in check goes to the policy, zones to topics
-        if scenario is not None and scenario.plugin:
-            plug_in = {"restricted_area": scenario.plugin["class"],
-                       "restricted_area_parameters": yaml.safe_dump(
-                           scenario.plugin.get("parameters") or {}, default_flow_style=True)}
-        elif scenario is not None:
-            zone_topic = TOPICS["keepout_mask" if args.keepout_grid else "zones"].name
-            children.start("zone_publisher", scenario=args.scenario,
-                           scenarios_file=args.scenarios_file,
-                           keepout_resolution=args.keepout_grid)
-        _, policy_log = children.start("policy_node", threads=POLICY_THREADS,
-                                       torch_threads=POLICY_THREADS, model=args.model,
-                                       configuration=args.configuration,
-                                       configurations_file=args.configurations_file,
-                                       autostart=False, **plug_in)
-
-        def wait_for(condition, what: str) -> None:
-            spin_until(executor, condition, deadline=deadline, period_s=0.05,
-                       failed=children.failed, what=what)
-
-        def transition(label: str) -> None:
-            """The policy node through a lifecycle transition, as a lifecycle manager asks."""
-            wait_for(lifecycle.service_is_ready, "the policy node's lifecycle services")
-            request = ChangeState.Request()
-            request.transition.label = label
-            answer = lifecycle.call_async(request)
-            wait_for(answer.done, f"the policy node to {label}")
-            if not answer.result().success:
-                raise ValueError(f"the policy node could not {label} (see {policy_log})")
-
-        transition("configure")  # loads the policy and subscribes
-        transition("activate")  # sends setpoints from its first answer on
-
-        def subscribed(topic: str) -> bool:
-            """Every node the contract names as a subscriber of `topic` (but the optional
-            ones) is in the graph (counted without this node's own subscriptions)."""
-            own = sum(s.topic_name == TOPICS[topic].resolved() for s in node.subscriptions)
-            needed = set(TOPICS[topic].subscribers) - set(OPTIONAL_NODES)
-            return node.count_subscribers(TOPICS[topic].name) - own >= len(needed)
-
-        def discovered() -> bool:
-            ready = (node.count_publishers(TOPICS["setpoint"].name) >= 1 and subscribed("setpoint")
-                     and subscribed("pusher") and reset.service_is_ready())
-            if zone_topic is not None:
-                ready &= node.count_publishers(zone_topic) >= 1 and \
-                    subscribed("keepout_mask" if args.keepout_grid else "zones")
-            return ready
-
-        def publishers_matched() -> bool:
-            """Both sides of discovery have matched (the nodes' logs say so): the recorder the
-            publishers the trial's figures come from, and the simulator's and the policy's
-            publishers every subscriber the graph shows. The graph alone is not enough: a
-            recorder that matches a publisher late misses what it sent before (a short trial's
-            first setpoints), and a publisher that has not matched the recorder yet sends the
-            first setpoint past the bag."""
-            return (all(matched(recorder_log, topic, "publisher") >= 1 for topic in recorded_first)
-                    and all(matched(log, topic, "subscriber") >= node.count_subscribers(
-                        TOPICS[topic].name) for log, topic in ((policy_log, "setpoint"),
-                                                               (sim_log, "pusher"),
-                                                               (sim_log, "block_pose"))))
-
+        zone_topic = start_nodes(stack, scenario, args, output, metadata_file)
+        stack.transition("configure", deadline=deadline)  # loads the policy and subscribes
+        stack.transition("activate", deadline=deadline)  # setpoints from its first answer on
         # The zones too: a recorder that matches the zone publisher after its latched history
         # can still reach it records no zone message.
-        recorded_first = ["setpoint", "pusher", "block_pose"]
-        if zone_topic is not None:
-            recorded_first.append("keepout_mask" if args.keepout_grid else "zones")
-
-        wait_for(discovered, "the nodes to discover each other")
-        wait_for(publishers_matched, "the publishers and the recorder to match")
+        recorded_first = ["setpoint", "pusher", "block_pose"] + ([zone_kind] if zone_topic
+                                                                 else [])
+        stack.wait_for(lambda: discovered(stack, zone_topic, zone_kind) and
+                       reset.service_is_ready(), "the nodes to discover each other",
+                       deadline=deadline, period_s=0.05)
+        stack.wait_for(lambda: publishers_matched(stack, recorded_first),
+                       "the publishers and the recorder to match", deadline=deadline,
+                       period_s=0.05)
         if scenario is not None:  # the policy echoes the zones in force as markers, one each
             expected = len(scenario.polygons_at(0))  # (a mask's pieces: at least one)
-
-            def holds_zones() -> bool:
-                shown = zones_in_force[-1] if zones_in_force else 0
-                return shown >= 1 if args.keepout_grid else shown == expected
-
-            wait_for(holds_zones, "the policy to hold the scenario's zones")
-        future = reset.call_async(Trigger.Request())
-        wait_for(future.done, "the simulator's reset")
-        def complete() -> bool:  # topics arrive in no fixed order: wait for every one
-            observed = range(args.steps + 1)
-            return (all(t in received["pusher"] and t in received["block"] for t in observed)
-                    and all(t in received["setpoint"] for t in range(args.steps)))
-
-        wait_for(complete, f"{args.steps} control steps")
-        results = trial_results(received, scenario, args)
+            shown = listener.zones_in_force
+            stack.wait_for(lambda: bool(shown) and (shown[-1] >= 1 if args.keepout_grid
+                                                    else shown[-1] == expected),
+                           "the policy to hold the scenario's zones", deadline=deadline,
+                           period_s=0.05)
+        stack.call(reset, Trigger.Request(), "the simulator's reset", deadline=deadline)
+        stack.wait_for(lambda: listener.complete(args.steps), f"{args.steps} control steps",
+                       deadline=deadline, period_s=0.05)
+        results = trial_results(listener.received, scenario, args)
         metadata["results"] = results
         metadata_file.write_text(json.dumps(metadata, indent=2))
 
@@ -310,25 +306,24 @@ def run_trial(args: argparse.Namespace) -> dict:
         # its reader missed only after its next heartbeat, so the nodes stop only once the bag
         # holds everything the trial heard, or after RECORDING_GRACE_S.
         until = time.monotonic() + RECORDING_GRACE_S
-        while ((missing := bag_lacks(output / "bag", heard, received))
-               and time.monotonic() < until and not children.failed()):
-            executor.spin_once(timeout_sec=0.1)
+        while ((missing := bag_lacks(output / "bag", listener.heard, listener.received))
+               and time.monotonic() < until and not stack.failed()):
+            stack.executor.spin_once(timeout_sec=0.1)
         if missing:  # the results stand (from the messages the trial received): said, kept
             print(f"trial: warning: the bag still lacks {', '.join(missing)} "
                   f"{RECORDING_GRACE_S:.0f} s after the last step (see {output}/recorder.log)",
                   file=sys.stderr)
-        if zone_check_errors:  # the first fault, in the bag's metadata too
-            metadata["zone_check_error"] = zone_check_errors[0]
+        if listener.zone_check_errors:  # the first fault, in the bag's metadata too
+            metadata["zone_check_error"] = listener.zone_check_errors[0]
             metadata_file.write_text(json.dumps(metadata, indent=2))
     finally:
-        for name in ("policy_node", "zone_publisher", "sim_node"):
-            children.stop(name)
-        time.sleep(0.5)  # let the recorder take the last messages
-        children.stop_all()
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
-    make_figures(output, scenario, args, received)
+        try:
+            for name in ("policy_node", "zone_publisher", "sim_node"):
+                stack.processes.stop(name)
+            time.sleep(0.5)  # let the recorder take the last messages
+        finally:
+            stack.close()
+    make_figures(output, scenario, args, listener.received)
     return metadata
 
 

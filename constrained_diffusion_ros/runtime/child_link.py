@@ -46,11 +46,13 @@ class ChildLink:
 
     @property
     def ready(self) -> bool:
+        """A child has what it needs to plan (jobs asked for before wait for it)."""
         with self.lock:
             return self._connection is not None
 
     @property
     def busy(self) -> bool:
+        """A job is waiting or being planned."""
         with self.lock:
             return self.in_flight is not None or self._pending is not None
 
@@ -68,11 +70,16 @@ class ChildLink:
                 self._tell(Request.CANCEL, None)  # before the pending job can
 
     def use(self, planner: ConstrainedPlanner) -> None:
+        """Plan with another configuration (of the same policy) from the next job on; a few
+        hundred bytes, so the caller never waits for the child to finish a plan."""
         with self.lock:
             self.planner_args = (planner.config, planner.robot)
             self._tell(Request.PLANNER, self.planner_args)
 
     def reseed(self, noise_seed: int) -> None:
+        """A new episode: the same noise as a fresh node from the next job on (like any
+        message, it stops the plan in flight; a job waiting is the last episode's too). A child
+        started again mid-episode starts from this seed again."""
         with self.lock:
             self.seed, self._pending = noise_seed, None
             self._tell(Request.SEED, noise_seed)

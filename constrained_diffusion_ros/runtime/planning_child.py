@@ -1,19 +1,24 @@
 """The planning child's side, and the messages both sides speak: the node (`PlanningProcess`)
-starts a plain interpreter on `child_command`, which runs `serve`; they talk over a socket pair
-in the messages of plan_jobs.py (`Request`, `Reply`), each a kind and a pickled payload.
+starts a plain interpreter on `child_command` (`spawn`), which runs `serve`; they talk over a
+socket pair in the messages of plan_jobs.py (`Request`, `Reply`), each a kind and a pickled
+payload.
 """
 
 from __future__ import annotations
 
 import contextlib
 import fcntl
+import os
 import pickle
+import socket
 import struct
+import subprocess
 import sys
 import termios
 import time
 from dataclasses import replace
 from multiprocessing.connection import Connection
+from pathlib import Path
 
 import torch
 
@@ -103,3 +108,35 @@ def child_command(descriptor: int, threads: int, niceness: int, idle: bool) -> l
     code = (f"import signal; signal.signal(signal.SIGINT, signal.SIG_IGN); "
             f"from {__name__} import serve; serve({descriptor}, {threads}, {niceness}, {idle})")
     return [sys.executable, "-c", code]
+
+
+def spawn(threads: int, niceness: int, idle: bool) -> tuple[subprocess.Popen, Connection]:
+    """A new child on a socket pair: a plain interpreter, not multiprocessing's spawn (that one
+    would run the caller's main script again in the child); fork is unsafe beside DDS threads.
+    It runs `threads` torch threads (OMP_NUM_THREADS set on purpose) and imports this package
+    from where the node does."""
+    package_root = str(Path(__file__).resolve().parents[2])
+    environment = {**os.environ, "OMP_NUM_THREADS": str(threads),
+                   "PYTHONPATH": os.pathsep.join(
+                       filter(None, [package_root, os.environ.get("PYTHONPATH")]))}
+    ours, theirs = socket.socketpair()
+    try:
+        process = subprocess.Popen(child_command(theirs.fileno(), threads, niceness, idle),
+                                   env=environment, pass_fds=[theirs.fileno()],
+                                   stdin=subprocess.DEVNULL)
+    except BaseException:
+        ours.close()
+        raise
+    finally:
+        theirs.close()
+    return process, Connection(ours.detach())
+
+
+def reap(process: subprocess.Popen, timeout: float = 5.0) -> int:
+    """A child's exit code once its socket has closed; one that still lives `timeout` s later
+    is not to be trusted, and is killed."""
+    try:
+        return process.wait(timeout)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        return process.wait()

@@ -1,4 +1,4 @@
-"""The planning process: plans in a child process of its own, supervised (`PlanWorker`).
+"""The planning process: plans in a child process of its own, supervised (`PlanningProcess`).
 
 Denoising runs hundreds of torch calls with Python between them, all under the interpreter's
 lock, which the control clock and the zone callbacks need too; a child process has an
@@ -7,22 +7,30 @@ crashes does not take the node with it, as LeRobot's asynchronous inference keep
 a server of its own. One job per module: what the child runs and the messages both sides speak
 (planning_child.py), its scheduling and the watch that keeps idle priority from starving it
 (priority_watch.py), which job goes to the child when (child_link.py), and here the
-supervision: the child started, given its weights, its replies received, and started again when
-it dies.
+supervision.
+
+Supervision: the child runs `threads` torch threads and exits when the node's end of the socket
+closes, even if the node was killed. One that dies (killed, out of memory, a crash in torch) is
+started again after 0.5, 1, 2, 4, 8 s, and given the weights, the planner and seed in use and
+the job waiting, if any. The job in flight dies with it: its observations are old by then, and
+it may be what killed the child; the controller, finding the worker idle, asks again from its
+newest observations. After `restart_limit` restarts in a row with no plan between them it gives
+up and says so in `error`. Callers never wait for any of this: what they send meanwhile is kept
+for the next child. The child plans at idle priority (SCHED_IDLE) where the node may take it
+back, watched by the receiver thread so that a busy machine does not starve it
+(`PriorityWatch`); elsewhere at `niceness` throughout.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
-import os
 import pickle
-import socket
 import subprocess
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass
 from multiprocessing.connection import Connection
-from pathlib import Path
 
 import numpy as np
 
@@ -30,7 +38,7 @@ from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult, Re
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.runtime.child_link import ChildLink
 from constrained_diffusion_ros.runtime.os_scheduling import may_leave_idle
-from constrained_diffusion_ros.runtime.planning_child import child_command, encode, unread
+from constrained_diffusion_ros.runtime.planning_child import encode, reap, spawn, unread
 from constrained_diffusion_ros.runtime.priority_watch import WATCH_PERIOD_S, PriorityWatch
 from constrained_diffusion_ros.zones.plugins import ZoneCheckError
 
@@ -41,28 +49,36 @@ RESTART_DELAY_S = 0.5  # before the first restart; doubled for each next one in 
 RESTART_DELAY_MAX_S = 8.0
 
 
+@dataclass
+class Restarts:
+    """When a child that died is started again: after a wait that doubles with each restart in
+    a row, up to `delay_max`, until `limit` restarts in a row brought no plan (a plan that
+    arrives sets `in_a_row` back to 0)."""
+
+    limit: int = RESTART_LIMIT
+    delay: float = RESTART_DELAY_S
+    delay_max: float = RESTART_DELAY_MAX_S
+    in_a_row: int = 0
+
+    def next_wait(self) -> float | None:
+        """Seconds to wait before the next restart; None: give up."""
+        if self.in_a_row >= self.limit:
+            return None
+        wait = min(self.delay * 2 ** self.in_a_row, self.delay_max)
+        self.in_a_row += 1
+        return wait
+
+
 class PlanningProcess:
     """Plans one chunk at a time in a child process; results come back on a receiver thread.
 
     `submit` replaces a job not yet sent (only the newest matters), and with `cancel` stops the
     one in flight; a job goes to the child when it is idle, so `reseed` and `use` apply before
     the next job (they stop the one in flight too: it was for the old episode or planner).
-    `on_result` is called on the receiver thread. The child runs `threads` torch threads and
-    exits when the node's end of the socket closes, even if the node was killed.
-
-    The receiver thread supervises the child: one that dies (killed, out of memory, a crash in
-    torch) is started again after 0.5, 1, 2, 4, 8 s, and given the weights, the planner and
-    seed in use and the job waiting, if any. The job in flight dies with it: its observations
-    are old by then, and it may be what killed the child; the controller, finding the worker
-    idle, asks again from its newest observations. After `restart_limit` restarts in a row with
-    no plan between them it gives up and says so in `error`. Callers never wait for any of
-    this: what they send meanwhile is kept for the next child. `failed` is True from a fault
-    until the next plan arrives; `restarts` counts the children started again.
-
-    The child plans at idle priority (SCHED_IDLE) where the node may take it back, watched by
-    the receiver thread so that a busy machine does not starve it (`PriorityWatch`); elsewhere
-    at `niceness` throughout. `priority` says how the child is scheduled as the child itself
-    reports it ("starting" until its report comes).
+    `on_result` is called on the receiver thread, which also supervises the child (above).
+    `failed` is True from a fault until the next plan arrives, `error` holds the last fault,
+    `restarts` counts the children started again; `priority` says how the child is scheduled
+    as the child itself reports it ("starting" until its report comes).
     """
 
     def __init__(self, planner: ConstrainedPlanner,
@@ -73,28 +89,20 @@ class PlanningProcess:
                  restart_delay_max: float = RESTART_DELAY_MAX_S) -> None:
         self._on_result, self._niceness, self._threads = on_result, niceness, threads
         self._idle = idle and may_leave_idle(niceness)
-        self._restart_limit, self._restart_delay = restart_limit, restart_delay
-        self._restart_delay_max = restart_delay_max
+        self._restarts = Restarts(restart_limit, restart_delay, restart_delay_max)
         self.watch = PriorityWatch()  # how the child is scheduled, and the starvation watch
-        # The weights are pickled once and given to every child before its first job (a
-        # restart then costs the node no interpreter time); the link keeps the planner, the
-        # seed and the job waiting for it.
+        # The weights pickled once, for every child (a restart costs the node no interpreter
+        # time); the link keeps the planner, the seed and the job waiting for it.
         self._weights = encode(Request.POLICY, planner.policy)
         self._link = ChildLink(planner, noise_seed, self._fail, self._lost)
-        package_root = str(Path(__file__).resolve().parents[2])
-        self._environment = {**os.environ, "OMP_NUM_THREADS": str(threads),
-                             "PYTHONPATH": os.pathsep.join(
-                                 filter(None, [package_root, os.environ.get("PYTHONPATH")]))}
         self._stopped = threading.Event()  # wakes the supervisor out of a restart's wait
-        self._in_a_row = 0  # restarts since the last plan arrived
         self.error: BaseException | None = None  # the last fault
-        self.errors = 0  # faults so far
-        self.failed = False  # a fault since the last plan arrived
+        self.errors, self.failed = 0, False  # faults so far; one since the last plan came
         self.restarts = 0  # children started again after one died
         self.cancelled = 0  # plans stopped in flight
         # The child starts its interpreter while the node goes on starting: the weights and
         # what follows go to it from the receiver thread, and a job asked for meanwhile waits.
-        self._process, connection = self._spawn()
+        self._process, connection = spawn(self._threads, self._niceness, self._idle)
         self._receiver = threading.Thread(target=self._supervise, args=(connection, None),
                                           name=f"{name}_receiver", daemon=True)
         self._receiver.start()
@@ -110,42 +118,30 @@ class PlanningProcess:
 
     @property
     def ready(self) -> bool:
-        """A child has what it needs to plan (jobs asked for before wait for it)."""
         return self._link.ready
 
     @property
     def busy(self) -> bool:
-        """A job is waiting or being planned."""
         return self._link.busy
 
     def submit(self, job: PlanJob, cancel: bool = False) -> None:
         self._link.submit(job, cancel)
 
     def use(self, planner: ConstrainedPlanner) -> None:
-        """Plan with another configuration (of the same policy) from the next job on; a few
-        hundred bytes, so the caller never waits for the child to finish a plan."""
         self._link.use(planner)
 
     def reseed(self, noise_seed: int) -> None:
-        """A new episode: the same noise as a fresh node from the next job on (like any
-        message, it stops the plan in flight; a job waiting is the last episode's too). A child
-        started again mid-episode starts from this seed again."""
         self._link.reseed(noise_seed)
 
     def shutdown(self, timeout: float = 5.0) -> None:
         self._link.stop()
         self._stopped.set()
-        process = self._process
-        try:
-            process.wait(timeout)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait(timeout)
+        reap(self._process, timeout)
         self._receiver.join(timeout)
 
     def _lost(self, message: str) -> None:
-        """A send failed: the child is gone, or the stream is cut mid-message. It is killed to
-        be sure, and the supervisor starts another; until then, what is sent waits for it."""
+        """A send failed (the child gone, or the stream cut mid-message): it is killed to be
+        sure, and the supervisor starts another; what is sent meanwhile waits for it."""
         self.failed = True
         LOGGER.warning("planning process: %s", message)
         with contextlib.suppress(OSError):
@@ -163,27 +159,10 @@ class PlanningProcess:
 
     # -- the receiver thread: supervision and replies -----------------------------------------
 
-    def _spawn(self) -> tuple[subprocess.Popen, Connection]:
-        """A new child on a socket pair: a plain interpreter, not multiprocessing's spawn (that
-        one would run the caller's main script again in the child); fork is unsafe beside DDS
-        threads."""
-        ours, theirs = socket.socketpair()
-        try:
-            process = subprocess.Popen(
-                child_command(theirs.fileno(), self._threads, self._niceness, self._idle),
-                env=self._environment, pass_fds=[theirs.fileno()], stdin=subprocess.DEVNULL)
-        except BaseException:
-            ours.close()
-            raise
-        finally:
-            theirs.close()
-        return process, Connection(ours.detach())
-
     def _supervise(self, connection: Connection, ready: bool | None) -> None:
         """Serve the child (given its weights first if `ready` is None) until it dies, then
-        start another after a growing wait, until `restart_limit` restarts in a row bring no
-        plan (a plan that arrives resets the count). Runs on the receiver thread: the callers
-        of `submit` never wait for it."""
+        start another as `Restarts` says. Runs on the receiver thread: the callers of `submit`
+        never wait for it."""
         process: subprocess.Popen | None = self._process
         death = ""
         if ready is None:
@@ -195,19 +174,19 @@ class PlanningProcess:
                 death = self._bury(process, connection)
                 if death is None:
                     return  # shut down
-            if self._in_a_row >= self._restart_limit:
+            restarts = self._restarts
+            wait = restarts.next_wait()
+            if wait is None:
                 self._link.give_up()
-                self._fail(f"{death}; {self._in_a_row} restarts in a row brought no plan: gave "
-                           f"up, nothing plans any more")
+                self._fail(f"{death}; {restarts.in_a_row} restarts in a row brought no plan: "
+                           f"gave up, nothing plans any more")
                 return
-            delay = min(self._restart_delay * 2 ** self._in_a_row, self._restart_delay_max)
-            self._in_a_row += 1
-            self._fail(f"{death}; restarting it in {delay:g} s ({self._in_a_row} of "
-                       f"{self._restart_limit} in a row)")
-            if self._stopped.wait(delay):
+            self._fail(f"{death}; restarting it in {wait:g} s ({restarts.in_a_row} of "
+                       f"{restarts.limit} in a row)")
+            if self._stopped.wait(wait):
                 return
             try:
-                process, connection = self._spawn()
+                process, connection = spawn(self._threads, self._niceness, self._idle)
             except OSError as error:  # out of memory or of processes: counted as a death
                 process, death = None, f"cannot start a planning process: {error}"
                 continue
@@ -219,8 +198,7 @@ class PlanningProcess:
                     self.watch.child_started()
             if stopping:  # shut down meanwhile: the child reads the end of its socket and exits
                 connection.close()
-                with contextlib.suppress(subprocess.TimeoutExpired):
-                    process.wait(5.0)
+                reap(process)
                 return
             ready = self._handshake(connection)
 
@@ -245,11 +223,7 @@ class PlanningProcess:
         stopping = self._link.detach(connection)
         if connection is not None:
             connection.close()
-        try:
-            code = process.wait(5.0)
-        except subprocess.TimeoutExpired:  # its socket closed, yet it lives: not to be trusted
-            process.kill()
-            code = process.wait()
+        code = reap(process)
         return None if stopping else f"the planning process exited (code {code})"
 
     def _receive(self, connection: Connection) -> None:
@@ -276,7 +250,7 @@ class PlanningProcess:
                 self.watch.priority = payload
                 continue
             if kind == Reply.CHUNK:
-                self._in_a_row, self.failed = 0, False  # before the owner hears of it
+                self._restarts.in_a_row, self.failed = 0, False  # before the owner hears of it
                 if not self._link.stopping:
                     self._offer(PlanResult(self._link.in_flight, np.asarray(payload),
                                            seconds))

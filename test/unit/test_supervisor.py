@@ -23,8 +23,7 @@ from constrained_diffusion_ros.planning.plan_jobs import PlanJob, PlanResult
 from constrained_diffusion_ros.planning.planners import ConstrainedPlanner
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
-from constrained_diffusion_ros.runtime import planning_process as workers
-from constrained_diffusion_ros.runtime import priority_watch
+from constrained_diffusion_ros.runtime import planning_child, priority_watch
 from constrained_diffusion_ros.runtime.os_scheduling import (
     CpuShare,
     may_leave_idle,
@@ -140,7 +139,7 @@ def test_a_child_that_keeps_dying_is_restarted_a_bounded_number_of_times_then_gi
         started.append(time.monotonic())
         return [sys.executable, "-c", "raise SystemExit(3)"]
 
-    monkeypatch.setattr(workers, "child_command", dying)
+    monkeypatch.setattr(planning_child, "child_command", dying)
     worker = PlanningProcess(ConstrainedPlanner(tiny_policy, FAST, PUSHT_ROBOT),
                              lambda result: None, restart_limit=3, restart_delay=0.1,
                              restart_delay_max=0.3)

@@ -16,58 +16,8 @@ against older zones.
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
-
-
-def late_zones(late: int) -> type:
-    """`ScenarioZones` whose moving zones are shown `late` control steps late."""
-    import numpy as np
-    import torch
-
-    from constrained_diffusion_ros.evaluation import runner
-    from constrained_diffusion_ros.pusht import PUSHT_ROBOT
-    from constrained_diffusion_ros.zones.area import RestrictedArea, Translated
-    from constrained_diffusion_ros.zones.episodes import EpisodeZones
-    from constrained_diffusion_ros.zones.geometry import ZoneSet
-    from constrained_diffusion_ros.zones.motion import MovingZones, assumed_speeds
-
-    class LateZones(runner.ScenarioZones):
-        def __init__(self, *args: object, **kwargs: object) -> None:
-            super().__init__(*args, **kwargs)
-            self.speeds: dict[int, np.ndarray] = {}  # step -> assumed speeds known then
-
-        def offsets_at(self, step: int) -> np.ndarray:
-            fresh = step not in self.offsets
-            offsets = super().offsets_at(step)
-            if fresh:
-                self.speeds[step] = assumed_speeds(self.moved, self.fastest, self.speed_bound)
-            return offsets
-
-        def area_at(self, step: int) -> RestrictedArea:
-            if not self.movers:
-                return super().area_at(step)
-            self.offsets_at(step)
-            seen = max(0, step - late)
-            shown = torch.from_numpy(self.offsets[seen])
-            areas, still, moving = [], [], []
-            for index, scenario in enumerate(self.scenarios):
-                if index in self.movers:
-                    areas.append(Translated(scenario.zones_at(0), shown[self.rows[index]]))
-                    still.append(ZoneSet.empty())
-                    moving.append(areas[-1])
-                else:
-                    areas.append(scenario.zones_at(step))
-                    still.append(areas[-1])
-                    moving.append(ZoneSet.empty())
-            velocity = (self.offsets[seen] - self.offsets.get(seen - 1, self.offsets[seen])) \
-                * PUSHT_ROBOT.control_hz
-            area, still, moving = (EpisodeZones(parts, self.scenario_of_row)
-                                   for parts in (areas, still, moving))
-            return MovingZones(area, still, moving, torch.from_numpy(self.speeds[seen]),
-                               (step - seen) / PUSHT_ROBOT.control_hz, PUSHT_ROBOT.reaction_s,
-                               drift=[(moving, torch.from_numpy(velocity))])
-
-    return LateZones
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -84,7 +34,8 @@ def main(argv: list[str] | None = None) -> int:
     from constrained_diffusion_ros.evaluation import runner
     from constrained_diffusion_ros.evaluation.evaluate import main as evaluate
 
-    runner.ScenarioZones = late_zones(known.late)
+    # every batch's zone source shows moving zones late (`ScenarioZones`'s `late`)
+    runner.ScenarioZones = functools.partial(runner.ScenarioZones, late=known.late)
     return evaluate(rest)
 
 

@@ -192,12 +192,14 @@ class ScenarioZones:
     `scenario_of_row[b]`, which change every step while that scenario moves (a homing one
     differently in each row: `follow` tells it the pushers). Moving zones come as
     `MovingZones`, each assumed able to move as a node assumes of live zones updated at the
-    control rate (`zones.motion`); `offsets` keeps where each row's zones were."""
+    control rate (`zones.motion`); `offsets` keeps where each row's zones were. With `late`,
+    moving zones are shown `late` control steps after they were where they are shown, aged by as
+    much (a tracker and a node behind; scripts/stress_late_zones.py)."""
 
     def __init__(self, scenarios: Sequence[Scenario], scenario_of_row: np.ndarray,
-                 speed_bound: float = DEFAULT_SPEED_BOUND) -> None:
+                 speed_bound: float = DEFAULT_SPEED_BOUND, late: int = 0) -> None:
         self.scenarios, self.scenario_of_row = list(scenarios), scenario_of_row
-        self.speed_bound = speed_bound
+        self.speed_bound, self.late = speed_bound, late
         self.moving = np.array([scenarios[i].moving for i in scenario_of_row])
         self.rows = [np.flatnonzero(scenario_of_row == i) for i in range(len(scenarios))]
         self.movers = {i: ZoneMover(s.motion, s.centroid, len(self.rows[i]))
@@ -205,6 +207,7 @@ class ScenarioZones:
         self.offsets: dict[int, np.ndarray] = {}  # step -> (B, 2) each row's zones moved by
         self.moved = np.zeros(len(scenario_of_row), dtype=bool)  # seen moving so far
         self.fastest = np.zeros(len(scenario_of_row))  # px/s, between two steps so far
+        self.speeds: dict[int, np.ndarray] = {}  # step -> (B,) px/s assumed as of that step
         self.pusher: np.ndarray | None = None
 
     def follow(self, step: int, pusher: np.ndarray) -> None:
@@ -229,12 +232,15 @@ class ScenarioZones:
             elif step == 0:
                 self.moved[:], self.fastest[:] = False, 0.0
             self.offsets[step] = offsets
+            self.speeds[step] = assumed_speeds(self.moved, self.fastest, self.speed_bound)
         return self.offsets[step]
 
     def area_at(self, step: int) -> RestrictedArea:
         if not self.movers:
             return EpisodeZones([s.zones_at(step) for s in self.scenarios], self.scenario_of_row)
-        offsets = torch.from_numpy(self.offsets_at(step))
+        self.offsets_at(step)
+        seen = max(0, step - self.late)  # the moment the zones shown were there
+        offsets = torch.from_numpy(self.offsets[seen])
         areas, still, moving = [], [], []
         for index, scenario in enumerate(self.scenarios):
             if index in self.movers:
@@ -245,14 +251,14 @@ class ScenarioZones:
                 areas.append(scenario.zones_at(step))
                 still.append(areas[-1])
                 moving.append(ZoneSet.empty())
-        speed = torch.from_numpy(assumed_speeds(self.moved, self.fastest, self.speed_bound))
+        speed = torch.from_numpy(self.speeds[seen])
         # measured as a tracker at the control rate would: the last step's displacement
-        velocity = (self.offsets[step] - self.offsets.get(step - 1, self.offsets[step])) \
+        velocity = (self.offsets[seen] - self.offsets.get(seen - 1, self.offsets[seen])) \
             * PUSHT_ROBOT.control_hz
         area, still, moving = (EpisodeZones(parts, self.scenario_of_row)
                                for parts in (areas, still, moving))
-        return MovingZones(area, still, moving, speed, 0.0, PUSHT_ROBOT.reaction_s,
-                           drift=[(moving, torch.from_numpy(velocity))])
+        return MovingZones(area, still, moving, speed, (step - seen) / PUSHT_ROBOT.control_hz,
+                           PUSHT_ROBOT.reaction_s, drift=[(moving, torch.from_numpy(velocity))])
 
     def version_at(self, step: int) -> np.ndarray:
         return np.where(self.moving, step, 0)

@@ -85,6 +85,29 @@ def test_the_evaluation_takes_a_hand_as_the_node_takes_live_zones() -> None:
     assert np.linalg.norm(first - pushers[0]) < np.linalg.norm(second - pushers[0])
 
 
+def test_zones_shown_late_are_where_they_were_then_and_aged_by_the_lag() -> None:
+    """`late` (the stress test of a tracker and a node behind): the zone, its speed and its
+    velocity as they were `late` steps before, with that age; the same hand shown on time is
+    where it is, at age 0."""
+    hand = load_scenarios()["hand_crossing@200"]
+    on_time = ScenarioZones([hand], np.zeros(1, dtype=int))
+    late = ScenarioZones([hand], np.zeros(1, dtype=int), late=3)
+    pushers = np.array([[256.0, 256.0]])
+    for step in range(20):  # the 1 s wait, then 10 steps across at 20 px a step
+        for zones in (on_time, late):
+            zones.follow(step, pushers)
+            zones.area_at(step)
+    shown, truth = late.area_at(19), on_time.area_at(19)
+    assert float(shown.age_s) == pytest.approx(0.3) and float(truth.age_s) == 0.0
+    then = torch.from_numpy(np.asarray(hand.centroid + on_time.offsets[16]))
+    assert shown.moving.signed_distance(then).item() < 0  # where it was 3 steps before,
+    assert truth.moving.signed_distance(then).item() > 0  # not where it is
+    np.testing.assert_allclose(shown.drift[0][1].numpy(),
+                               (on_time.offsets[16] - on_time.offsets[15]) * 10.0)
+    assert shown.speed.item() == pytest.approx(truth.speed.item())  # seen moving, both
+    assert truth.speed.item() > 0
+
+
 def test_a_contact_is_unavoidable_only_where_the_zone_covers_all_the_pusher_can_reach() -> None:
     reach = PUSHT_ROBOT.reach(STEP_S)
     corner = np.array([[20.0, 20.0]])

@@ -1,6 +1,7 @@
 # The two commands of the README: `make demo` (a recorded, constrained trial) and `make test`.
 # Both create or reuse .venv (Python 3.11) and install the pinned requirements once; later runs
-# only re-install when requirements*.txt, setup.py or package.xml change.
+# only re-install when requirements*.txt, setup.py or package.xml change, or a top-level package
+# comes or goes (the editable install maps each by name).
 
 PYTHON ?= python3.11
 VENV ?= .venv
@@ -10,7 +11,7 @@ DATASET ?= ../shared/datasets/pusht_cchi_v7_replay.zarr
 
 .PHONY: setup demo test bench evaluation clean-venv
 
-$(STAMP): requirements.txt requirements-test.txt setup.py package.xml
+$(STAMP): requirements.txt requirements-test.txt setup.py package.xml $(wildcard */__init__.py)
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --disable-pip-version-check -r requirements.txt -r requirements-test.txt
 	$(BIN)/python -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e .

@@ -1,5 +1,5 @@
 """The ROS interface: every topic and service (`contract`), the message <-> array and
-stamp <-> control-step conversions (`conversions`), and how a node runs (`spin`)."""
+stamp <-> control-step conversions (`conversions`); how a node runs is `node_support`'s."""
 
 from msg_schemas.contract import (
     FRAME_ID,

@@ -24,7 +24,7 @@ from constrained_diffusion_ros.evaluation.launcher import Stack
 from constrained_diffusion_ros.view.layout import view_channels
 from constrained_diffusion_ros.view.zone_requests import ZONE_REQUEST_SCHEMA_NAME
 from msg_schemas import TOPICS, qos_profile
-from msg_schemas.node_support.spin import spin_until
+from node_support.spin import spin_until
 
 GARBAGE_EVERY = 7  # one request in this many is not JSON (7: every id gets good ones too)
 

@@ -25,7 +25,7 @@ from __future__ import annotations
 import sys
 from functools import partial
 
-from msg_schemas.node_support.parameters import Param, answered_help
+from node_support.parameters import Param, answered_help
 
 MODES = ("lockstep", "realtime")
 
@@ -46,7 +46,7 @@ PARAMETERS = (
 def main(args: list[str] | None = None) -> int:
     if answered_help(args, "sim_node", __doc__, PARAMETERS):
         return 0  # before rclpy is imported: --help at once
-    from msg_schemas.node_support.spin import spin_node
+    from node_support.spin import spin_node
     from sim_bridge.sim_node_impl import SimNode
 
     return spin_node(partial(SimNode, PARAMETERS), "sim_node", args, PARAMETERS, __doc__)

@@ -23,9 +23,9 @@ from msg_schemas.conversions import (
     stamp_nanoseconds,
     stamp_of_step,
 )
-from msg_schemas.node_support.parameters import Param, declare
-from msg_schemas.node_support.spin import log_matches
 from msg_schemas.text import one_line
+from node_support.parameters import Param, declare
+from node_support.spin import log_matches
 from sim_bridge.physics import PushTSim
 from sim_bridge.scene import CONTROL_HZ, COORD_LIMITS
 

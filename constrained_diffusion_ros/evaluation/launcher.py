@@ -154,7 +154,7 @@ class Stack:
         """Spin the client until `condition()` holds; RuntimeError "timed out waiting for
         <what>" past `timeout_s` from now or the time.monotonic() `deadline`, or naming the
         node process that exited."""
-        from msg_schemas.node_support.spin import spin_until
+        from node_support.spin import spin_until
 
         spin_until(self.executor, condition, timeout_s, deadline=deadline, period_s=period_s,
                    failed=self.failed, what=what)

@@ -227,21 +227,21 @@ def start_nodes(stack: Stack, scenario, args: argparse.Namespace, output: Path,
     return zone_topic
 
 
-def discovered(stack: Stack, zone_topic: str | None, zone_kind: str) -> bool:
+def subscribed(node, topic: str) -> bool:
+    """Every node the contract names as a subscriber of `topic` (but the optional ones) is in
+    the graph, counted without `node`'s own subscriptions."""
+    own = sum(s.topic_name == TOPICS[topic].resolved() for s in node.subscriptions)
+    needed = set(TOPICS[topic].subscribers) - set(OPTIONAL_NODES)
+    return node.count_subscribers(TOPICS[topic].name) - own >= len(needed)
+
+
+def discovered(node, zone_topic: str | None, zone_kind: str) -> bool:
     """The graph has every node the trial needs: setpoints published and taken, the pusher
-    taken, the reset service, and the zones' publisher and subscriber (counted without the
-    trial's own subscriptions)."""
-    node = stack.node
-
-    def subscribed(topic: str) -> bool:
-        own = sum(s.topic_name == TOPICS[topic].resolved() for s in node.subscriptions)
-        needed = set(TOPICS[topic].subscribers) - set(OPTIONAL_NODES)
-        return node.count_subscribers(TOPICS[topic].name) - own >= len(needed)
-
-    ready = (node.count_publishers(TOPICS["setpoint"].name) >= 1 and subscribed("setpoint")
-             and subscribed("pusher"))
+    taken, and the zones' publisher and subscriber."""
+    ready = (node.count_publishers(TOPICS["setpoint"].name) >= 1
+             and subscribed(node, "setpoint") and subscribed(node, "pusher"))
     if zone_topic is not None:
-        ready &= node.count_publishers(zone_topic) >= 1 and subscribed(zone_kind)
+        ready &= node.count_publishers(zone_topic) >= 1 and subscribed(node, zone_kind)
     return ready
 
 
@@ -282,7 +282,7 @@ def run_trial(args: argparse.Namespace) -> dict:
         # can still reach it records no zone message.
         recorded_first = ["setpoint", "pusher", "block_pose"] + ([zone_kind] if zone_topic
                                                                  else [])
-        stack.wait_for(lambda: discovered(stack, zone_topic, zone_kind) and
+        stack.wait_for(lambda: discovered(stack.node, zone_topic, zone_kind) and
                        reset.service_is_ready(), "the nodes to discover each other",
                        deadline=deadline, period_s=0.05)
         stack.wait_for(lambda: publishers_matched(stack, recorded_first),
@@ -339,7 +339,7 @@ def bag_lacks(bag: Path, heard: set[str], received: dict[str, dict[int, object]]
 
 def matched(log: Path, topic: str, side: str) -> int:
     """The last count of `side`s ("publisher" or "subscriber") a node logged as matched on the
-    contract topic (msg_schemas.node_support.spin.log_matches); 0 before any."""
+    contract topic (node_support.spin.log_matches); 0 before any."""
     counts = re.findall(rf"{re.escape(TOPICS[topic].resolved())}: (\d+) {side}\(s\) matched",
                         log.read_text())
     return int(counts[-1]) if counts else 0

@@ -21,7 +21,7 @@ import sys
 from typing import TYPE_CHECKING
 
 from constrained_diffusion_ros.nodes.policy_parameters import PARAMETERS
-from msg_schemas.node_support.parameters import answered_help
+from node_support.parameters import answered_help
 
 if TYPE_CHECKING:
     from constrained_diffusion_ros.nodes.policy_node_impl import PolicyNode
@@ -31,7 +31,7 @@ def main(args: list[str] | None = None) -> int:
     if answered_help(args, "policy_node", __doc__, PARAMETERS):
         return 0  # before torch, rclpy and the planner are imported: --help at once
     from constrained_diffusion_ros.nodes.policy_node_impl import PolicyNode
-    from msg_schemas.node_support.spin import spin_node
+    from node_support.spin import spin_node
 
     return spin_node(PolicyNode, "policy_node", args, PARAMETERS, __doc__)
 

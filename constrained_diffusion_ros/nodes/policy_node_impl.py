@@ -37,9 +37,9 @@ from constrained_diffusion_ros.policy.weights import load_policy
 from constrained_diffusion_ros.zones.grid import MaskCaps
 from msg_schemas import NAMESPACE, TOPICS, qos_profile
 from msg_schemas.conversions import path_message
-from msg_schemas.node_support.parameters import declare
-from msg_schemas.node_support.spin import RosLogHandler, StartupPhases, log_matches
 from msg_schemas.text import one_line
+from node_support.parameters import declare
+from node_support.spin import RosLogHandler, StartupPhases, log_matches
 
 # What a node is made of, and how each is destroyed: what configure built goes at cleanup.
 ENTITIES = {"publishers": "destroy_publisher", "subscriptions": "destroy_subscription",

@@ -12,8 +12,8 @@ from typing import TYPE_CHECKING
 
 from constrained_diffusion_ros.paths import config_dir, default_model_dir
 from constrained_diffusion_ros.runtime.os_scheduling import CLOCK_PRIORITY, EXECUTOR_PRIORITY
-from msg_schemas.node_support.parameters import Param
 from msg_schemas.text import one_line
+from node_support.parameters import Param
 from sim_bridge.scene import AGENT_RADIUS, CONTROL_HZ, K_P, K_V, SIM_HZ, WORKSPACE_SIZE
 
 if TYPE_CHECKING:

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import sys
 
-from msg_schemas.node_support.parameters import Param, answered_help
+from node_support.parameters import Param, answered_help
 
 PARAMETERS = (
     Param("output", "trials/bag", "rosbag2 directory (MCAP) to write; must not exist yet",

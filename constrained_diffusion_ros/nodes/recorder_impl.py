@@ -31,8 +31,8 @@ from rosbags.typesys import Stores, get_typestore
 
 from constrained_diffusion_ros.recording import bags
 from msg_schemas import NAMESPACE, TOPICS, Endpoint, qos_profile
-from msg_schemas.node_support.parameters import Param, declare
-from msg_schemas.node_support.spin import log_matches
+from node_support.parameters import Param, declare
+from node_support.spin import log_matches
 
 
 def bag_qos(profile: QoSProfile) -> Qos:

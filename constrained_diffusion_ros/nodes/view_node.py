@@ -30,7 +30,7 @@ from functools import partial
 
 from constrained_diffusion_ros.nodes.policy_parameters import DEFAULT_MAX_VERTICES
 from constrained_diffusion_ros.paths import config_dir
-from msg_schemas.node_support.parameters import Param, answered_help
+from node_support.parameters import Param, answered_help
 
 PARAMETERS = (
     Param("host", "127.0.0.1", "interface the WebSocket server binds (0.0.0.0: every one)",
@@ -54,7 +54,7 @@ def main(args: list[str] | None = None) -> int:
     if answered_help(args, "view_node", __doc__, PARAMETERS):
         return 0  # before rclpy, torch and foxglove are imported: --help at once
     from constrained_diffusion_ros.nodes.view_node_impl import ViewNode
-    from msg_schemas.node_support.spin import spin_node
+    from node_support.spin import spin_node
 
     return spin_node(partial(ViewNode, PARAMETERS), "view_node", args, PARAMETERS, __doc__)
 

@@ -33,9 +33,9 @@ from constrained_diffusion_ros.view.zone_requests import (
 )
 from msg_schemas import NAMESPACE, TOPICS, qos_profile
 from msg_schemas.conversions import zone_message
-from msg_schemas.node_support.parameters import Param, declare
-from msg_schemas.node_support.spin import UnusableArgument
 from msg_schemas.text import one_line
+from node_support.parameters import Param, declare
+from node_support.spin import UnusableArgument
 
 STATUS_PERIOD_S = 1.0
 

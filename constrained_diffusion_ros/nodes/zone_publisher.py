@@ -23,7 +23,7 @@ import sys
 from functools import partial
 
 from constrained_diffusion_ros.nodes.policy_parameters import MASK_CELLS
-from msg_schemas.node_support.parameters import Param, answered_help
+from node_support.parameters import Param, answered_help
 
 # Cells a side of the keep-out mask at most: what the policy node takes (`MaskCaps.cells`); a
 # resolution of 1e-9 px would ask for 10**23 cells. Over the 512 px workspace: cells at least
@@ -56,7 +56,7 @@ def main(args: list[str] | None = None) -> int:
     import yaml
 
     from constrained_diffusion_ros.nodes.zone_publisher_impl import ZonePublisher
-    from msg_schemas.node_support.spin import spin_node
+    from node_support.spin import spin_node
 
     return spin_node(partial(ZonePublisher, PARAMETERS), "zone_publisher", args, PARAMETERS,
                      __doc__, startup_errors=(OSError, yaml.YAMLError))

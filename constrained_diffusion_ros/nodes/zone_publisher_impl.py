@@ -20,7 +20,7 @@ from constrained_diffusion_ros.zones import rasterize, validate_polygon
 from constrained_diffusion_ros.zones.grid import MaskCaps
 from msg_schemas import NAMESPACE, TOPICS, qos_profile
 from msg_schemas.conversions import occupancy_grid, step_of_stamp, zone_message
-from msg_schemas.node_support.parameters import Param, declare
+from node_support.parameters import Param, declare
 from sim_bridge import CONTROL_HZ
 
 # Cells a side of the keep-out mask at most (zone_publisher.MAX_KEEPOUT_CELLS, which --help

@@ -23,7 +23,7 @@ PACKAGE = "constrained_diffusion_ros"
 VENV_BIN = Path(sys.executable).parent
 # What the package ships when git cannot say (no checkout): sources, data and build files.
 SHIPPED = ("package.xml", "setup.py", "setup.cfg", "resource", PACKAGE, "sim_bridge",
-           "msg_schemas", "config", "launch", "models")
+           "msg_schemas", "node_support", "config", "launch", "models")
 REQUIRED_EXEC_DEPENDS = {"rclpy", "geometry_msgs", "nav_msgs", "visualization_msgs", "std_srvs"}
 
 

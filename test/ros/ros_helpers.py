@@ -19,7 +19,7 @@ from rclpy.executors import SingleThreadedExecutor
 from constrained_diffusion_ros.evaluation.launcher import NodeProcesses, random_domain_id
 from msg_schemas import FRAME_ID, NAMESPACE, TOPICS, qos_profile
 from msg_schemas.conversions import stamp_nanoseconds, stamp_of_step, step_of_stamp
-from msg_schemas.node_support import spin
+from node_support import spin
 from sim_bridge import CONTROL_HZ
 
 REPO = Path(__file__).resolve().parents[2]

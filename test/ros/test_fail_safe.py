@@ -27,7 +27,7 @@ from ros_helpers import step_stamp
 
 from constrained_diffusion_ros.evaluation import launcher
 from msg_schemas import FRAME_ID
-from msg_schemas.node_support.spin import SHUTDOWN_DEADLINE_S
+from node_support.spin import SHUTDOWN_DEADLINE_S
 
 PERIOD_S = 0.05  # 20 Hz: a clock that went on alone would send many setpoints in a second
 # A zone answered after a message too big to read: was 8000 ms. Typically 6-35 ms here; a CI

@@ -16,7 +16,7 @@ from rclpy.parameter import Parameter
 
 from constrained_diffusion_ros.evaluation.launcher import random_domain_id
 from constrained_diffusion_ros.nodes import policy_parameters, recorder, zone_publisher
-from msg_schemas.node_support.parameters import Param, declare, usage
+from node_support.parameters import Param, declare, usage
 from sim_bridge import sim_node
 
 NODES = {"policy_node": policy_parameters, "sim_node": sim_node, "recorder": recorder,

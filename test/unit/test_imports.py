@@ -1,6 +1,7 @@
-"""Imports run one way: msg_schemas <- sim_bridge <- constrained_diffusion_ros, and the ROS-free
-core (policy, sampling, zones, planning, runtime) imports neither the simulator nor ROS; the
-method (planning and below) does not import the live runtime, nor ask the operating system.
+"""Imports run one way: msg_schemas <- node_support <- sim_bridge <- constrained_diffusion_ros,
+and the ROS-free core (policy, sampling, zones, planning, runtime) imports neither the simulator
+nor ROS; the method (planning and below) does not import the live runtime, nor ask the
+operating system.
 
 Every import is read from the source (module level and inside functions alike), so the test
 needs neither ROS nor torch to run, and a lazy import cannot hide a dependency.
@@ -12,7 +13,7 @@ import ast
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
-PACKAGES = ("msg_schemas", "sim_bridge", "constrained_diffusion_ros")
+PACKAGES = ("msg_schemas", "node_support", "sim_bridge", "constrained_diffusion_ros")
 CORE = tuple(f"constrained_diffusion_ros.{layer}"
              for layer in ("policy", "sampling", "zones", "planning", "runtime"))
 RUNTIME = "constrained_diffusion_ros.runtime"
@@ -23,7 +24,8 @@ OPERATING_SYSTEM = ("os", "subprocess", "socket", "fcntl", "termios", "signal", 
 ROS = ("rclpy", "rcl_interfaces", "builtin_interfaces", "geometry_msgs", "nav_msgs", "std_msgs",
        "std_srvs", "visualization_msgs", "diagnostic_msgs", "ament_index_python")
 # What each package may import of the others (the direction of the layers).
-ALLOWED = {"msg_schemas": {"msg_schemas"}, "sim_bridge": {"msg_schemas", "sim_bridge"},
+ALLOWED = {"msg_schemas": {"msg_schemas"}, "node_support": {"msg_schemas", "node_support"},
+           "sim_bridge": {"msg_schemas", "node_support", "sim_bridge"},
            "constrained_diffusion_ros": set(PACKAGES)}
 
 
@@ -67,7 +69,7 @@ def violations(graph: dict[str, set[str]]) -> list[str]:
             if top in PACKAGES and top not in ALLOWED[package]:
                 found.append(f"{module} imports {target}: {package} may not import {top}")
             if module.startswith(CORE) and (top in ROS or top == "sim_bridge"
-                                            or top == "msg_schemas"):
+                                            or top in ("msg_schemas", "node_support")):
                 found.append(f"{module} imports {target}: the core is ROS-free and simulator-free")
             if module.startswith(CORE) and target.startswith("constrained_diffusion_ros.") \
                     and not target.startswith(CORE):

@@ -28,8 +28,8 @@ from rclpy.subscription import Subscription
 from rclpy.timer import Timer
 from rclpy.utilities import remove_ros_args
 
-from msg_schemas.node_support.parameters import Param, answered_help
 from msg_schemas.text import one_line
+from node_support.parameters import Param, answered_help
 
 BAD_ARGUMENTS = 2  # exit code of a command line rclpy cannot parse, as argparse's
 FAILED = 1  # exit code of a node whose executor died while it ran

@@ -120,7 +120,7 @@ class Stack:
 
     `wait_for` spins the client until a condition holds, and fails at once, naming it, when a
     node process has exited (a wait on a dead node does not sit out its timeout);
-    `transition` takes a managed node through a lifecycle transition, as nav2's lifecycle
+    `transition` takes the policy node through a lifecycle transition, as nav2's lifecycle
     manager asks; `close` stops the processes and the client. The client node is `node`
     (namespace /pusht) on `executor`, in `context`."""
 
@@ -139,7 +139,7 @@ class Stack:
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.logs: dict[str, Path] = {}  # node name -> its log file
-        self._lifecycle: dict[str, object] = {}  # node name -> its change_state client
+        self._lifecycle = None  # the policy node's change_state client, once asked
 
     def start(self, name: str, **parameters: object) -> Path:
         """Start node `name` (`NodeProcesses.start`'s arguments); its log file."""
@@ -169,21 +169,23 @@ class Stack:
         self.wait_for(answer.done, what, deadline=deadline)
         return answer.result()
 
-    def transition(self, label: str, node: str = "policy_node",
-                   deadline: float | None = None) -> None:
-        """Node `node` through lifecycle transition `label` (configure, activate, ...);
-        ValueError naming its log if it refuses."""
+    def transition(self, label: str, deadline: float | None = None) -> None:
+        """The policy node (the managed one) through lifecycle transition `label`
+        (configure, activate, ...); ValueError naming its log if it refuses."""
         from lifecycle_msgs.srv import ChangeState
 
-        if node not in self._lifecycle:
-            self._lifecycle[node] = self.node.create_client(ChangeState,
-                                                            f"{node}/change_state")
+        from msg_schemas import SERVICES
+
+        if self._lifecycle is None:
+            self._lifecycle = self.node.create_client(ChangeState,
+                                                      SERVICES["change_state"].name)
         request = ChangeState.Request()
         request.transition.label = label
-        answer = self.call(self._lifecycle[node], request, f"{node} to {label}",
+        answer = self.call(self._lifecycle, request, f"the policy node to {label}",
                            deadline=deadline)
         if not answer.success:
-            raise ValueError(f"{node} could not {label} (see {self.logs.get(node, 'its log')})")
+            raise ValueError(f"the policy node could not {label} (see "
+                             f"{self.logs.get('policy_node', 'its log')})")
 
     def close(self) -> None:
         """Stop every node process (at once, SIGINT then kill), then the client."""

@@ -118,10 +118,7 @@ class Client:
         self.spin_until(lambda: time.monotonic() >= deadline, seconds + 1, "time")
 
     def call(self, client, request, what: str):
-        self.spin_until(client.service_is_ready, 30.0, f"the {what} service")
-        future = client.call_async(request)
-        self.spin_until(future.done, 30.0, what)
-        return future.result()
+        return self.stack.call(client, request, what)
 
     def reset_to(self, seed: int) -> None:
         from rclpy.parameter import Parameter

@@ -170,7 +170,9 @@ class PolicyNode(LifecycleNode):
         self.zone_markers = ZoneMarkers(self, self.zones,
                                         1.0 / self.rate_hz if self.timing.realtime else None)
         ZoneClearing(self, self.zones, lambda: self._zones_changed(time.monotonic()))
-        self.observations = ObservationInput(self, self.robot, self.timing.observe)
+        self.observations = ObservationInput(
+            self, self.robot, self.timing.observe,
+            late_s=1.0 / self.rate_hz if self.timing.realtime else None)
         self.standstills = StandstillCounts()  # the pusher parked at a zone's edge
         self.reaction = ReactionTimes()
         self.timing.start()

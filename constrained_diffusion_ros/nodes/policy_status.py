@@ -21,7 +21,8 @@ ZONE_CHECK_KEYS = ("zone_check_errors", "zone_check_failed", "zone_check_error",
 HEALTH_COUNTERS = ("violations", "unsound_setpoints", "zones_refused", "masks_refused",
                    "observations_refused", "late_steps", "planning_errors", "ticks_withheld",
                    "configuration_changes", "changes_refused", "zone_check_errors",
-                   "runs_restarted", "cornered_steps", "zone_speed_exceeded")
+                   "runs_restarted", "cornered_steps", "zone_speed_exceeded",
+                   "observations_late")
 
 
 class StatusReporter:
@@ -96,6 +97,10 @@ class StatusReporter:
         if since["observations_refused"]:
             problems.append(f"{since['observations_refused']} observation(s) refused (not "
                             f"finite, or a pusher that cannot be the robot's)")
+        if since["observations_late"]:
+            problems.append(f"{since['observations_late']} observation(s) answered more than a "
+                            f"control period after they were published (the executor was held): "
+                            f"the shield's guarantee assumes a state at most a period old")
         if since["ticks_withheld"]:
             problems.append(f"{since['ticks_withheld']} tick(s) withheld: the executor that "
                             f"answers zones had stalled")

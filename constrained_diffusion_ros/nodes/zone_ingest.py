@@ -42,7 +42,6 @@ MARKER_NAMESPACE = "zones"  # zone markers: marker namespace <node namespace>/zo
 EXPIRY_PERIOD_S = 0.2  # zones past their lifetime are dropped this often
 COUNTS = ("zone_messages", "zones_applied", "zones_refused", "zones_oversized", "zones_stale",
           "zone_batches", "masks_applied", "masks_refused")
-PACING_SLICE_S = 0.05  # a paced batch waits in slices this long, telling `alive` between them
 OVERSIZED_LOG_PERIOD_S = 1.0  # a flood of oversized messages is logged this often at most
 
 
@@ -95,6 +94,11 @@ class ZoneIngest:
                                      self._on_zone, latched, event_callbacks=quiet, raw=True)]
         self._seen: OrderedDict[tuple, None] = OrderedDict()
         self._paced_until = 0.0  # realtime: no zone batch before then (`_on_zone`)
+        self._deferred: list[tuple] = []  # (serialized, info) taken, not applied yet
+        self._deferred_since = 0.0  # when the first of them came (time.monotonic())
+        # Realtime: fires when a batch that came too early is due.
+        self._pacer = node.create_timer(1.0, self._on_paced, autostart=False) \
+            if realtime else None
         node.create_subscription(OccupancyGrid, TOPICS["keepout_mask"].name,
                                  self._on_serialized_mask, qos_profile(TOPICS["keepout_mask"]),
                                  raw=True)
@@ -119,21 +123,40 @@ class ZoneIngest:
         batch (the last message per id) and the union is rebuilt once, when next read. Each is
         read only if it is no longer than the caps allow.
 
-        Realtime: a batch right after another first waits as long as the last one took, so a
-        flood gets half the executor thread at most. Kept busy at SCHED_FIFO by a flood, the
-        thread can be throttled by the kernel (its real-time budget spent) while it holds the
-        interpreter lock, and the clock's ticks then wait for it (see docs/hostile_inputs.md);
-        the wait coalesces the messages meanwhile, so nothing is lost and a zone waits no
-        longer than behind a batch."""
+        Realtime: a batch right after another waits as long as the last one took, so a flood
+        gets half the executor thread at most. The wait is a timer's, not a sleep in this
+        callback: the executor answers observations meanwhile (a sleeping callback held them,
+        and under a flood the node answered observations up to a second old, from a queue that
+        had grown while it slept). Kept busy at SCHED_FIFO by a flood, the thread can be
+        throttled by the kernel (its real-time budget spent) while it holds the interpreter
+        lock, and the clock's ticks then wait for it (see docs/hostile_inputs.md); the wait
+        coalesces the messages meanwhile, so nothing is lost and a zone waits no longer than
+        behind a batch."""
         received = time.monotonic()
-        # Pacing is the executor at work, not stalled: `alive` (the clock's watchdog) is told
-        # while it waits, and when the batch is done.
-        while self.realtime and (wait := self._paced_until - time.monotonic()) > 0:
-            self.alive()
-            time.sleep(min(wait, PACING_SLICE_S))  # frees the CPU and the lock
-        messages = [(data, info)]
+        if not self._deferred:
+            self._deferred_since = received
+        self._deferred.append((data, info))
         for subscription in self.subscriptions:
-            messages += self._take_waiting(subscription, ZONE_BATCH_MAX - len(messages))
+            self._deferred += self._take_waiting(subscription,
+                                                 ZONE_BATCH_MAX - len(self._deferred))
+        wait = self._paced_until - received if self.realtime else 0.0
+        if wait > 0:
+            self._pacer.timer_period_ns = max(1, int(wait * 1e9))
+            self._pacer.reset()
+            return
+        self._apply_deferred()
+
+    def _on_paced(self) -> None:
+        self._pacer.cancel()
+        if self._deferred:
+            for subscription in self.subscriptions:
+                self._deferred += self._take_waiting(subscription,
+                                                     ZONE_BATCH_MAX - len(self._deferred))
+            self._apply_deferred()
+
+    def _apply_deferred(self) -> None:
+        """The messages taken since the last batch, applied as one."""
+        messages, received, self._deferred = self._deferred, self._deferred_since, []
         updates, refused = [], 0
         for serialized, message_info in messages:
             if self._seen_before(serialized, message_info):
@@ -166,7 +189,7 @@ class ZoneIngest:
             self.on_change(received, outcome.within_reach)
         finished = time.monotonic()
         self._paced_until = finished + (finished - max(received, self._paced_until))
-        self.alive()
+        self.alive()  # the executor is at work, not stalled (the clock's watchdog)
 
     def _seen_before(self, serialized: bytes, info: dict) -> bool:
         """Whether the other zone subscription already delivered this message (a latched

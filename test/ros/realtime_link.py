@@ -17,9 +17,10 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Point32, PointStamped, PolygonInstanceStamped, PolygonStamped
 from nav_msgs.msg import OccupancyGrid
 from nav_msgs.msg import Path as PathMsg
-from ros_helpers import observation_messages
+from ros_helpers import observation_messages, step_stamp
 
 from msg_schemas import FRAME_ID, TOPICS
+from msg_schemas.conversions import stamp_seconds
 from sim_bridge import AGENT_RADIUS
 
 TICK_S = 1.0
@@ -60,6 +61,15 @@ class RealtimeLink:
         self.keypoints.publish(keypoints)
         self.pusher.publish(message)
         self.step += 1
+
+    def observe_handled(self, pusher: tuple[float, float] = PUSHER) -> None:
+        """An observation, and a wait until the node says it took or refused it: it keeps each
+        half's newest message only, so one published before it handled the last would replace
+        that one, as a robot's newer state does."""
+        stamp = stamp_seconds(step_stamp(self.step))
+        self.observe(pusher)
+        self.latest_status(lambda v: abs(float(v.get("observation_stamp", "nan")) - stamp)
+                           < 1e-6)
 
     def planning(self) -> None:
         """Observations until a plan is in and a tick has sent one of its waypoints."""

@@ -92,7 +92,7 @@ def test_a_pusher_no_robot_can_be_is_refused_and_never_held_at(link: RealtimeLin
     link.observe()  # a plausible pusher: held where it is
     before = len(link.arrivals)
     for pusher in [(1e6, 1e6), (-300.0, 200.0)] * 3:
-        link.observe(pusher)
+        link.observe_handled(pusher)
     assert link.ros.spin_until(lambda: len(link.arrivals) > before + 1, 3 * TICK_S + 2)
     sent = [p for _, p in link.arrivals[before:]]
     assert all(np.array_equal(p, PUSHER) for p in sent), sent
@@ -144,6 +144,6 @@ def test_a_pusher_parked_at_a_zones_edge_is_reported_as_a_standstill(
     link.zones.publish(beside)
     link.latest_status(lambda v: "14" in v["zone_ids"].split(","))
     for _ in range(8):
-        link.observe()
+        link.observe_handled()
     status = link.latest_status(lambda v: int(v.get("standstill_steps", 0)) >= 5)
     assert float(status["standstill_longest_s"]) >= 0.5

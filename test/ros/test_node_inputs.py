@@ -1,0 +1,94 @@
+"""The policy node's inputs on its executor, in this process: a paced zone batch leaves the
+executor to the observations, the observations are the newest state only, and one answered
+late is said."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticStatus
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.serialization import serialize_message
+from ros_helpers import observation_messages
+
+from constrained_diffusion_ros.nodes.observation_input import ObservationInput
+from constrained_diffusion_ros.nodes.policy_status import StatusReporter
+from constrained_diffusion_ros.nodes.zone_ingest import ZoneIngest
+from constrained_diffusion_ros.pusht import PUSHT_ROBOT
+from constrained_diffusion_ros.zones.grid import MaskCaps
+from constrained_diffusion_ros.zones.live import LiveZones
+from msg_schemas.conversions import stamp_seconds, zone_message
+
+WORKSPACE = (0.0, 0.0, 512.0, 512.0)
+SQUARE = np.array([(100.0, 100.0), (140.0, 100.0), (140.0, 140.0), (100.0, 140.0)])
+
+
+def test_a_zone_batch_due_later_waits_on_a_timer_not_in_the_callback(ros) -> None:
+    """Realtime pacing: a batch that comes before the last one's pace is over is taken and
+    left for a timer, so the callback returns at once and the executor answers observations
+    meanwhile; the timer applies it, stamped with when it came."""
+    node = rclpy.create_node("ingest_under_test", context=ros.context)
+    node.declare_parameter("zone_lifetime", 0.0)
+    node.declare_parameter("keepout_threshold", 65)
+    zones, changes = LiveZones(workspace=WORKSPACE), []
+    ingest = ZoneIngest(node, zones, WORKSPACE, MaskCaps(),
+                        lambda received, _within: changes.append(received), realtime=True)
+    executor = SingleThreadedExecutor(context=ros.context)
+    executor.add_node(node)
+    try:
+        ingest._paced_until = time.monotonic() + 0.3  # the last batch took 0.3 s
+        came = time.monotonic()
+        ingest._on_zone(serialize_message(zone_message(7, SQUARE, node.get_clock().now()
+                                                       .to_msg())),
+                        {"source_timestamp": 1, "publication_sequence_number": 1})
+        assert zones.ids == [] and changes == []  # not applied in the callback
+        deadline = time.monotonic() + 5.0
+        while not changes and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        assert zones.ids == [7]
+        assert changes[0] >= came and time.monotonic() >= ingest._paced_until - 0.3
+    finally:
+        ingest.shutdown()
+        executor.shutdown()
+        node.destroy_node()
+
+
+def test_observations_keep_the_newest_state_only(ros) -> None:
+    """Each observation half is subscribed with a queue of one: a node held a while (a zone
+    flood) answers the state as it is, not a backlog of old ones."""
+    node = rclpy.create_node("observer_under_test", context=ros.context)
+    try:
+        observations = ObservationInput(node, PUSHT_ROBOT, lambda stamp, msg: None)
+        depths = [s.qos_profile.depth for s in observations.subscriptions]
+        assert depths == [1, 1]
+    finally:
+        node.destroy_node()
+
+
+def test_an_observation_answered_a_period_after_it_was_published_is_counted_late(ros) -> None:
+    """Realtime: the shield answers a state at most a control period old; an observation
+    whose pusher half was published longer ago than that when it is taken is counted late
+    (WARN on /diagnostics), one taken at once is not."""
+    node = rclpy.create_node("late_observer_under_test", context=ros.context)
+    try:
+        observations = ObservationInput(node, PUSHT_ROBOT, lambda stamp, msg: None,
+                                        late_s=0.1)
+        for step, age_s in ((1, 0.0), (2, 0.5)):
+            keypoints, pusher = observation_messages(step, (100.0, 100.0))
+            observations._on_keypoints(keypoints, {})
+            observations._on_pusher(pusher, {"source_timestamp":
+                                             int((time.time() - age_s) * 1e9)})
+            assert observations.take(stamp_seconds(pusher.header.stamp)) is not None
+            status = observations.status()
+            assert int(status["observations_late"]) == (step == 2)
+        assert int(status["observations_taken"]) == 2
+        assert float(status["observation_age_ms"]) >= 500
+        reporter = StatusReporter(node)
+        assert reporter.health({"observations_late": 0})[0] == DiagnosticStatus.OK
+        level, message = reporter.health(status)
+        assert level == DiagnosticStatus.WARN and "1 observation(s) answered more" in message
+        assert reporter.health(status)[0] == DiagnosticStatus.OK  # said once, as it rose
+    finally:
+        node.destroy_node()

@@ -539,9 +539,9 @@ def run_condition(args: argparse.Namespace, loaded: bool) -> None:
                       f"{100 * steal / max(total, 1):.1f}%")
                 print("    node: " + ", ".join(f"{key} {client.status.get(key, '?')}" for key in (
                     "planning_ms", "plans", "plans_dropped", "plans_cancelled", "held_steps",
-                    "late_steps", "ticks_missed", "ticks_withheld", "tick_late_p99_ms",
-                    "clock_realtime",
-                    "executor_realtime", "planning_priority")))
+                    "late_steps", "ticks_missed", "ticks_withheld", "observations_late",
+                    "tick_late_p99_ms", "clock_realtime", "executor_realtime",
+                    "planning_priority")))
                 print("    standstills at a zone's edge (the node's count: 5+ steps under 0.5 px "
                       "with a zone within 5 px of the disc), with a waypoint to execute: "
                       + ", ".join(f"{key} {client.status.get(key, '?')}"

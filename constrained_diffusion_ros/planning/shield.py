@@ -18,7 +18,8 @@ the zone's boundary: the safe point around it heading most nearly where it is se
 real-time node's setpoint may reach the robot after its tick, so the one in force runs a step
 longer: a candidate must be safe taking over now or one step later (`late`), after a step of
 any setpoint that may be in force then (a node that answers one observation again, as plans
-or zones arrive, cannot know which of its answers the robot's tick met). With
+or zones arrive, cannot know which of its answers the robot's tick met); where none is, safe
+late after the newer of them (the oldest dropped first), then on time only. With
 `slide=False` it takes the largest safe step along the line instead, as the filter before
 did (it stops the pusher where the line grazes a zone).
 The last accepted setpoint was itself checked from the previous state and is a candidate, so a
@@ -302,12 +303,18 @@ class PusherShield:
             distance = (candidates - goal[:, None]).norm(dim=-1)
             order = distance.argsort(dim=1, stable=True)
             pick = self._first_safe(area, p, v, held, candidates, order)
-            if (pick < 0).any() and self.one_step is not None:
-                # Nothing is safe if it takes over a step late (a zone came onto the setpoint
-                # in force): the best that is safe on time, rather than an unchecked escape.
+            # Nothing is safe if it takes over a step late after some setpoint that may be in
+            # force (one sent just before a zone came, into it): the best that is safe late
+            # after the newer ones, the likelier in force (the robot takes the newest that
+            # reached it), down to on time only, rather than an unchecked escape.
+            for newest in range(held.shape[1] - 1, -1, -1) if self.one_step is not None else ():
                 again = torch.nonzero(pick < 0).flatten()
-                pick[again] = self._first_safe(area.select_rows(again), p[again], v[again],
-                                               None, candidates[again], order[again])
+                if len(again) == 0:
+                    break
+                pick[again] = self._first_safe(
+                    area.select_rows(again), p[again], v[again],
+                    held[again, held.shape[1] - newest:] if newest else None,
+                    candidates[again], order[again])
             stuck = pick < 0
             fallback = candidates[rows, pick.clamp_min(0)]
             wanted = (goal - start).norm(dim=-1)

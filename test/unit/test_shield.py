@@ -370,6 +370,28 @@ def test_when_nothing_is_safe_a_step_late_the_shield_still_keeps_the_on_time_pat
     assert INFLATED.signed_distance(path).min() >= shield.margin - 1e-3
 
 
+def test_when_a_raced_setpoint_leaves_nothing_safe_late_the_newer_ones_still_count() -> None:
+    """Found live under a zone flood: a setpoint sent just before the node had the zone, into
+    it, left no candidate safe a step late, and the shield fell back to on time only; the
+    robot had already taken the node's newer answer for a step, and from there the setpoint
+    chosen on time ran the disc 2.8 px into the zone. Now the fallback is safe late after the
+    newer setpoints, dropping the oldest first, before it gives the late check up."""
+    zone = ZoneSet.from_polygons([rectangle(296.4, 257.5, 336.4, 297.5)])
+    grown = zone.inflate(AGENT_RADIUS).bounded(PUSHT_ROBOT.workspace)
+    shield = PusherShield(PUSHT_ROBOT)
+    p = torch.tensor([[266.4, 299.0]], dtype=torch.float64)
+    v = torch.tensor([[88.0, -40.0]], dtype=torch.float64)
+    # in force at the observation, the raced one (inside the grown zone), the node's answer
+    held = torch.tensor([[[280.6, 292.5], [325.6, 289.7], [308.8, 330.4]]], dtype=torch.float64)
+    goal = torch.tensor([[280.4, 283.9]], dtype=torch.float64)
+    assert not shield._safe(grown, p, v, goal[:, None], held[:, -1:])[0, 0]
+    assert not shield._safe(grown, p, v, shield._brakes(p, v, held[:, -1]), held).any()
+    chosen, cornered = shield._choose(grown, p, v, held, goal)
+    assert not cornered.any()
+    assert shield._safe(grown, p, v, chosen[:, None], held[:, -1:])[0, 0]  # after the newest
+    assert shield._safe(grown, p, v, chosen[:, None])[0, 0]  # and on time
+
+
 def drive_with_answers_that_race_the_tick(seed: int) -> float:
     """As a real-time node drives the pusher past the post: each observation gets one to
     three answers (the setpoint from the observation, then others as plans arrive or zones

@@ -199,7 +199,8 @@ def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
     begin = start_scene(client, seed)
     client.spin_for(args.warmup)
     for _ in range(LOOKS):  # the pusher may be held or near the plan's end: look again
-        held = client.setpoints[-1].point
+        placed = len(client.setpoints)  # the listener's thread keeps appending
+        held = client.setpoints[placed - 1].point
         (_, step_before, before), (_, step, pusher) = client.pushers[-2:]
         moved = (pusher - before) / max(1, step - step_before)
         vertices = zone_in_path(client.plan, held, pusher, moved, args.zone_size)
@@ -244,9 +245,9 @@ def run_trial(client: Client, index: int, seed: int, args: argparse.Namespace,
                                 *(shape.distance(shapely.Point(*p)) for p in later)])
     depths = [disc_depth(shape, p)
               for _, _, p in client.pushers[n_pushers:]]
-    # Sent before the zone was published, unknown to its placement: one that heads into it
-    # runs into the zone before any answer can.
-    unseen = [s.point for s in after if s.sent < published_wall]
+    # Sent before the zone was published, unknown to its placement (those that came while it
+    # was placed too): one that heads into it runs into the zone before any answer can.
+    unseen = [s.point for s in client.setpoints[placed:] if s.sent < published_wall]
     raced = any(not stops_outside(shape, pusher, moved, point) for point in unseen)
     if raced:
         result.raced_steps += sum(depth > 0 for depth in depths)

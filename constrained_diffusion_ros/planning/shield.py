@@ -19,7 +19,7 @@ real-time node's setpoint may reach the robot after its tick, so the one in forc
 longer: a candidate must be safe taking over now or one step later (`late`), after a step of
 any setpoint that may be in force then (a node that answers one observation again, as plans
 or zones arrive, cannot know which of its answers the robot's tick met); where none is, safe
-late after the newer of them (the oldest dropped first), then on time only. With
+late after those some candidate can be safe after, the newer first, then on time only. With
 `slide=False` it takes the largest safe step along the line instead, as the filter before
 did (it stops the pusher where the line grazes a zone).
 The last accepted setpoint was itself checked from the previous state and is a candidate, so a
@@ -303,18 +303,10 @@ class PusherShield:
             distance = (candidates - goal[:, None]).norm(dim=-1)
             order = distance.argsort(dim=1, stable=True)
             pick = self._first_safe(area, p, v, held, candidates, order)
-            # Nothing is safe if it takes over a step late after some setpoint that may be in
-            # force (one sent just before a zone came, into it): the best that is safe late
-            # after the newer ones, the likelier in force (the robot takes the newest that
-            # reached it), down to on time only, rather than an unchecked escape.
-            for newest in range(held.shape[1] - 1, -1, -1) if self.one_step is not None else ():
+            if (pick < 0).any() and self.one_step is not None:
                 again = torch.nonzero(pick < 0).flatten()
-                if len(again) == 0:
-                    break
-                pick[again] = self._first_safe(
-                    area.select_rows(again), p[again], v[again],
-                    held[again, held.shape[1] - newest:] if newest else None,
-                    candidates[again], order[again])
+                pick[again] = self._late_fallback(area.select_rows(again), p[again], v[again],
+                                                  held[again], candidates[again], order[again])
             stuck = pick < 0
             fallback = candidates[rows, pick.clamp_min(0)]
             wanted = (goal - start).norm(dim=-1)
@@ -425,6 +417,35 @@ class PusherShield:
                     break
             pending = pending[found[pending] < 0]
         return found
+
+    def _late_fallback(self, area: RestrictedArea, p: Tensor, v: Tensor, held: Tensor,
+                       candidates: Tensor, order: Tensor) -> Tensor:
+        """(N,) `_first_safe` for rows where no candidate is safe a step late after every one
+        of `held` (N, K, 2) (one sent just before a zone came, into it): a setpoint after which
+        no candidate is safe is one no choice now can help, and is left out; then the newer
+        of the rest count (the robot takes the newest that reached it), the oldest dropped
+        first, down to on time only, rather than an unchecked escape."""
+        count = held.shape[1]
+        if count == 1:  # the check that failed: on time only
+            return self._first_safe(area, p, v, None, candidates, order)
+        lost = torch.stack([self._first_safe(area, p, v, held[:, k:k + 1], candidates, order) < 0
+                            for k in range(count)], dim=1)  # (N, K)
+        # A lost one is replaced by the newest kept (a duplicate changes no check); a row whose
+        # every one is lost keeps them, and ends on time only.
+        newest_kept = torch.where(lost, -1, torch.arange(count)).amax(dim=1)
+        keep = torch.where(newest_kept[:, None] >= 0, ~lost, True)
+        held = torch.where(keep[..., None], held,
+                           held[torch.arange(len(held)), newest_kept.clamp_min(0)][:, None])
+        pick = torch.full((len(held),), -1, dtype=torch.long)
+        first = count if (~keep).any() else count - 1  # all of them, unchanged: refused
+        for newest in range(first, -1, -1):
+            again = torch.nonzero(pick < 0).flatten()
+            if len(again) == 0:
+                break
+            pick[again] = self._first_safe(area.select_rows(again), p[again], v[again],
+                                           held[again, count - newest:] if newest else None,
+                                           candidates[again], order[again])
+        return pick
 
     def _follow(self, area: RestrictedArea, p: Tensor, v: Tensor, held: Tensor, goal: Tensor,
                 rows: Tensor) -> Tensor:

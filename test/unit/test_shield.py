@@ -370,25 +370,32 @@ def test_when_nothing_is_safe_a_step_late_the_shield_still_keeps_the_on_time_pat
     assert INFLATED.signed_distance(path).min() >= shield.margin - 1e-3
 
 
-def test_when_a_raced_setpoint_leaves_nothing_safe_late_the_newer_ones_still_count() -> None:
+@pytest.mark.parametrize("zone, position, velocity, held, goal, executed", [
+    # The robot took the node's answer (the newest) for a step.
+    ((296.4, 257.5, 336.4, 297.5), (266.4, 299.0), (88.0, -40.0),
+     [(280.6, 292.5), (325.6, 289.7), (308.8, 330.4)], (280.4, 283.9), [2]),
+    # The answer reached the robot after its tick: it kept the setpoint in force (the oldest).
+    ((131.1514, 246.7171, 171.1514, 286.7171), (193.4, 246.3), (-85.0, 31.0),
+     [(179.9, 251.5), (170.8, 256.0), (187.2, 256.0)], (187.2, 257.1), [0, 2]),
+], ids=["answer_taken", "answer_late"])
+def test_a_setpoint_raced_into_a_zone_leaves_the_others_that_may_be_in_force_checked(
+        zone, position, velocity, held, goal, executed) -> None:
     """Found live under a zone flood: a setpoint sent just before the node had the zone, into
-    it, left no candidate safe a step late, and the shield fell back to on time only; the
-    robot had already taken the node's newer answer for a step, and from there the setpoint
-    chosen on time ran the disc 2.8 px into the zone. Now the fallback is safe late after the
-    newer setpoints, dropping the oldest first, before it gives the late check up."""
-    zone = ZoneSet.from_polygons([rectangle(296.4, 257.5, 336.4, 297.5)])
-    grown = zone.inflate(AGENT_RADIUS).bounded(PUSHT_ROBOT.workspace)
+    it (the second held), left no candidate safe a step late, and the shield fell back to on
+    time only; the robot had taken another of those that may be in force for a step, and from
+    there the setpoint chosen ran the disc 2.8 px (0.7 px) into the zone. Now the raced one,
+    after which nothing is safe, is left out, and the choice is safe a step late after each of
+    the others, and on time."""
+    grown = ZoneSet.from_polygons([rectangle(*zone)]).inflate(AGENT_RADIUS).bounded(
+        PUSHT_ROBOT.workspace)
     shield = PusherShield(PUSHT_ROBOT)
-    p = torch.tensor([[266.4, 299.0]], dtype=torch.float64)
-    v = torch.tensor([[88.0, -40.0]], dtype=torch.float64)
-    # in force at the observation, the raced one (inside the grown zone), the node's answer
-    held = torch.tensor([[[280.6, 292.5], [325.6, 289.7], [308.8, 330.4]]], dtype=torch.float64)
-    goal = torch.tensor([[280.4, 283.9]], dtype=torch.float64)
-    assert not shield._safe(grown, p, v, goal[:, None], held[:, -1:])[0, 0]
-    assert not shield._safe(grown, p, v, shield._brakes(p, v, held[:, -1]), held).any()
+    p, v = (torch.tensor([value], dtype=torch.float64) for value in (position, velocity))
+    held, goal = (torch.tensor([value], dtype=torch.float64) for value in (held, goal))
+    assert not shield._safe(grown, p, v, goal[:, None], held)[0, 0]
     chosen, cornered = shield._choose(grown, p, v, held, goal)
     assert not cornered.any()
-    assert shield._safe(grown, p, v, chosen[:, None], held[:, -1:])[0, 0]  # after the newest
+    for k in executed:
+        assert shield._safe(grown, p, v, chosen[:, None], held[:, k:k + 1])[0, 0], k
     assert shield._safe(grown, p, v, chosen[:, None])[0, 0]  # and on time
 
 

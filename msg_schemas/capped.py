@@ -38,6 +38,19 @@ def mask_message_cap(max_cells: int) -> int:
     return largest(OccupancyGrid()) + max_cells
 
 
+def zone_id_unread(data: bytes) -> int | None:
+    """The id of a serialized `PolygonInstanceStamped`, read without reading the message: the
+    id is its last field, an int64, so the message's last 8 bytes (CDR pads only before a
+    field, never after the last), in the byte order the encapsulation header's second byte
+    gives (odd: little-endian). A batch of zone messages keeps the last per id, so the ones a
+    later message of their id replaces need never be read. None for bytes too short to be one.
+    A sender can make the last 8 bytes lie: whoever reads the message checks its id (a
+    message whose id is not there is refused)."""
+    if len(data) < 12:
+        return None
+    return int.from_bytes(data[-8:], "little" if data[1] & 1 else "big", signed=True)
+
+
 def read_capped(data: bytes, msg_type: type, max_bytes: int) -> tuple[object | None, str]:
     """(the message, "") from its serialized `data`, or (None, why not) when `data` is longer
     than `max_bytes` (not read at all) or cannot be read as `msg_type`."""

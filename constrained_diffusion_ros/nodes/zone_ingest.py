@@ -33,7 +33,7 @@ from constrained_diffusion_ros.zones.area import Bounds
 from constrained_diffusion_ros.zones.grid import BuiltMask, MaskCaps, build_mask
 from constrained_diffusion_ros.zones.live import BatchOutcome, LiveZones
 from msg_schemas import FRAME_ID, TOPICS, qos_profile
-from msg_schemas.capped import mask_message_cap, read_capped, zone_message_cap
+from msg_schemas.capped import mask_message_cap, read_capped, zone_id_unread, zone_message_cap
 from msg_schemas.conversions import stamp_seconds
 from msg_schemas.text import one_line
 
@@ -43,6 +43,19 @@ EXPIRY_PERIOD_S = 0.2  # zones past their lifetime are dropped this often
 COUNTS = ("zone_messages", "zones_applied", "zones_refused", "zones_oversized", "zones_stale",
           "zone_batches", "masks_applied", "masks_refused")
 OVERSIZED_LOG_PERIOD_S = 1.0  # a flood of oversized messages is logged this often at most
+
+
+def by_id(messages: list[tuple[bytes, dict]]) -> list[tuple[int | None, list[bytes]]]:
+    """(id, its messages newest first) per id (`zone_id_unread`), in the order the ids last
+    appeared, as `LiveZones.apply` keeps them; a message too long to read or too short to hold
+    an id is one of its own (id None), to be refused when read."""
+    groups: dict[object, tuple[int | None, list[bytes]]] = {}
+    for index, (data, _info) in enumerate(messages):
+        zone_id = None if isinstance(data, Unread) else zone_id_unread(data)
+        key = ("unread", index) if zone_id is None else zone_id
+        _, older = groups.pop(key, (zone_id, []))
+        groups[key] = (zone_id, [data, *older])
+    return list(groups.values())
 
 
 @dataclass(frozen=True)
@@ -155,41 +168,51 @@ class ZoneIngest:
             self._apply_deferred()
 
     def _apply_deferred(self) -> None:
-        """The messages taken since the last batch, applied as one."""
+        """The messages taken since the last batch, applied as one: per id the newest that
+        reads, so a flood's thousands of messages cost a read per id, not one each."""
         messages, received, self._deferred = self._deferred, self._deferred_since, []
-        updates, refused = [], 0
-        for serialized, message_info in messages:
-            if self._seen_before(serialized, message_info):
-                continue
-            message, problem = read_capped(serialized, PolygonInstanceStamped, self.zone_cap)
-            if message is None:
+        fresh = [(data, info) for data, info in messages if not self._seen_before(data, info)]
+        updates, refused, read = [], 0, 0
+        for guessed, newest_first in by_id(fresh):
+            for serialized in newest_first:
+                read += 1
+                update = self._read_zone(serialized, guessed)
+                if update is not None:
+                    updates.append(update)
+                    break
                 refused += 1
-                self.counts["zones_oversized"] += 1
-                self.last_refusal = f"zone {problem} (max_vertices {self.zones.max_vertices})"
-                self.node.get_logger().warning(
-                    f"zone refused unread, zones in force kept: {self.last_refusal}",
-                    throttle_duration_sec=OVERSIZED_LOG_PERIOD_S)
-                continue
-            zone_id = int(message.polygon.id)
-            if message.header.frame_id not in ("", FRAME_ID):
-                refused += 1
-                self.last_refusal = (f"zone {zone_id}: frame "
-                                     f"{one_line(repr(message.header.frame_id), 80)} is not "
-                                     f"{FRAME_ID!r}")
-                self.node.get_logger().warning(f"zone refused, zones in force kept: "
-                                               f"{self.last_refusal}")
-                continue
-            stamp = stamp_seconds(message.header.stamp) or None  # 0: unstamped, from arrival
-            updates.append((zone_id, [(p.x, p.y) for p in message.polygon.polygon.points],
-                            stamp))
         lifetime = self.node.get_parameter("zone_lifetime").value or None
         outcome = self.zones.apply(updates, self._now(), lifetime)
-        self._count(outcome, refused)
+        self._count(outcome, refused, len(fresh) - read)
         if outcome.changed:
             self.on_change(received, outcome.within_reach)
         finished = time.monotonic()
         self._paced_until = finished + (finished - max(received, self._paced_until))
         self.alive()  # the executor is at work, not stalled (the clock's watchdog)
+
+    def _read_zone(self, serialized: bytes, guessed: int | None) -> tuple | None:
+        """(id, vertices, stamp) of a zone message batched under id `guessed`, or None when it
+        is refused (warned, `last_refusal` set)."""
+        message, problem = read_capped(serialized, PolygonInstanceStamped, self.zone_cap)
+        if message is None:
+            self.counts["zones_oversized"] += 1
+            self.last_refusal = f"zone {problem} (max_vertices {self.zones.max_vertices})"
+            self.node.get_logger().warning(
+                f"zone refused unread, zones in force kept: {self.last_refusal}",
+                throttle_duration_sec=OVERSIZED_LOG_PERIOD_S)
+            return None
+        zone_id = int(message.polygon.id)
+        if message.header.frame_id not in ("", FRAME_ID):
+            problem = f"frame {one_line(repr(message.header.frame_id), 80)} is not {FRAME_ID!r}"
+        elif zone_id != guessed:  # its last 8 bytes, which batched it, are not its id
+            problem = "its id is not the message's last field (bytes after the message)"
+        if problem:
+            self.last_refusal = f"zone {zone_id}: {problem}"
+            self.node.get_logger().warning(f"zone refused, zones in force kept: "
+                                           f"{self.last_refusal}")
+            return None
+        stamp = stamp_seconds(message.header.stamp) or None  # 0: unstamped, from arrival
+        return zone_id, [(p.x, p.y) for p in message.polygon.polygon.points], stamp
 
     def _seen_before(self, serialized: bytes, info: dict) -> bool:
         """Whether the other zone subscription already delivered this message (a latched
@@ -294,10 +317,11 @@ class ZoneIngest:
 
     # -- counts -------------------------------------------------------------------------------
 
-    def _count(self, outcome: BatchOutcome, refused_frames: int) -> None:
+    def _count(self, outcome: BatchOutcome, refused_frames: int, unread: int = 0) -> None:
+        """`unread`: messages a later one of their id replaced before they were read."""
         counts = self.counts
         counts["zone_batches"] += 1
-        counts["zone_messages"] += outcome.received + refused_frames
+        counts["zone_messages"] += outcome.received + refused_frames + unread
         counts["zones_applied"] += outcome.applied
         counts["zones_refused"] += len(outcome.refused) + refused_frames
         counts["zones_stale"] += outcome.stale

@@ -6,10 +6,12 @@ from __future__ import annotations
 import struct
 
 from geometry_msgs.msg import Point32, PolygonInstanceStamped
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from rclpy.serialization import serialize_message
 
 from msg_schemas import FRAME_ID
-from msg_schemas.capped import FRAME_ID_SLACK, read_capped, zone_message_cap
+from msg_schemas.capped import FRAME_ID_SLACK, read_capped, zone_id_unread, zone_message_cap
 
 
 def zone(vertices: int, frame_id: str = FRAME_ID) -> bytes:
@@ -44,3 +46,16 @@ def test_a_small_message_that_claims_a_billion_vertices_costs_what_it_holds() ->
         assert problem.startswith(f"unreadable message of {len(data)} bytes")
     else:
         assert len(message.polygon.polygon.points) <= 1
+
+
+@settings(max_examples=200, deadline=None)
+@given(zone_id=st.integers(-2**63, 2**63 - 1), vertices=st.integers(0, 64),
+       frame_id=st.text(max_size=40))
+def test_a_zone_messages_id_is_read_from_its_last_bytes_whatever_it_holds(
+        zone_id: int, vertices: int, frame_id: str) -> None:
+    """The batch keeps the last message per id without reading the others: the id read from
+    the serialized bytes is the message's id, for any frame, vertex count and id."""
+    message = PolygonInstanceStamped()
+    message.header.frame_id, message.polygon.id = frame_id, zone_id
+    message.polygon.polygon.points = [Point32(x=float(k), y=1.0, z=0.0) for k in range(vertices)]
+    assert zone_id_unread(serialize_message(message)) == zone_id

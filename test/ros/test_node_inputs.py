@@ -13,12 +13,15 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.serialization import serialize_message
 from ros_helpers import observation_messages
 
+from constrained_diffusion_ros.nodes import zone_ingest
 from constrained_diffusion_ros.nodes.observation_input import ObservationInput
 from constrained_diffusion_ros.nodes.policy_status import StatusReporter
 from constrained_diffusion_ros.nodes.zone_ingest import ZoneIngest
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones.grid import MaskCaps
 from constrained_diffusion_ros.zones.live import LiveZones
+from msg_schemas import FRAME_ID
+from msg_schemas.capped import read_capped
 from msg_schemas.conversions import stamp_seconds, zone_message
 
 WORKSPACE = (0.0, 0.0, 512.0, 512.0)
@@ -52,6 +55,52 @@ def test_a_zone_batch_due_later_waits_on_a_timer_not_in_the_callback(ros) -> Non
     finally:
         ingest.shutdown()
         executor.shutdown()
+        node.destroy_node()
+
+
+def test_a_zone_batch_reads_the_newest_message_per_id_and_falls_back_on_a_refused_one(
+        ros, monkeypatch) -> None:
+    """A flood of 300 messages for 3 ids costs 3 reads, and each id takes its last message.
+    A newest message that is refused (a wrong frame; bytes after the message that make its
+    last 8 read as another id) leaves the one before it of that id to be read, as if the
+    refused one had not come."""
+    node = rclpy.create_node("batch_under_test", context=ros.context)
+    node.declare_parameter("zone_lifetime", 0.0)
+    node.declare_parameter("keepout_threshold", 65)
+    zones = LiveZones(workspace=WORKSPACE)
+    ingest = ZoneIngest(node, zones, WORKSPACE, MaskCaps(), lambda *_: None, realtime=False)
+    reads = []
+
+    def counted(*args):
+        reads.append(args[0])
+        return read_capped(*args)
+
+    monkeypatch.setattr(zone_ingest, "read_capped", counted)
+    stamp = node.get_clock().now().to_msg()
+
+    def message(zone_id: int, shift: float, frame_id: str = FRAME_ID) -> bytes:
+        msg = zone_message(zone_id, SQUARE + shift, stamp)
+        msg.header.frame_id = frame_id
+        return serialize_message(msg)
+
+    flood = [message(1 + k % 3, k) for k in range(300)]
+    lying = message(5, 50.0) + (6).to_bytes(8, "little", signed=True)
+    batch = [*flood, message(4, 10.0), message(4, 20.0, "elsewhere"), message(6, 30.0), lying]
+    try:
+        for k, data in enumerate(batch):  # taken at once: the callback's own and those waiting
+            ingest._deferred.append((data, {"source_timestamp": k + 1,
+                                            "publication_sequence_number": k + 1}))
+        ingest._on_zone(batch[-1], {"source_timestamp": len(batch),
+                                    "publication_sequence_number": len(batch)})
+        outlines = zones.outlines()
+        assert sorted(outlines) == [1, 2, 3, 4, 6]
+        for zone_id, last in ((1, 297), (2, 298), (3, 299), (4, 10), (6, 30)):
+            assert np.allclose(outlines[zone_id][:4], SQUARE + last), zone_id
+        assert len(reads) == 3 + 2 + 2  # the last per id, and the one before each refused one
+        assert ingest.counts["zone_messages"] == len(batch)
+        assert ingest.counts["zones_refused"] == 2
+    finally:
+        ingest.shutdown()
         node.destroy_node()
 
 

@@ -19,7 +19,8 @@ real-time node's setpoint may reach the robot after its tick, so the one in forc
 longer: a candidate must be safe taking over now or one step later (`late`), after a step of
 any setpoint that may be in force then (a node that answers one observation again, as plans
 or zones arrive, cannot know which of its answers the robot's tick met); where none is, safe
-late after those some candidate can be safe after, the newer first, then on time only. With
+late after those some candidate can be safe after, else after the newest, else on time only.
+With
 `slide=False` it takes the largest safe step along the line instead, as the filter before
 did (it stops the pusher where the line grazes a zone).
 The last accepted setpoint was itself checked from the previous state and is a candidate, so a
@@ -253,9 +254,10 @@ class PusherShield:
 
     def _margins(self, area: RestrictedArea, p: Tensor, v: Tensor, candidates: Tensor,
                  held: Tensor | None = None, path: Path | None = None,
-                 after_s: tuple[float, ...] = (0.0,)) -> Tensor:
+                 after_s: tuple[float, ...] = (0.0,), per_start: bool = False) -> Tensor:
         """(A, N, F) `_margin` over the points of the paths `after_s[a]` or more from now, for
-        each of `after_s` (the distances taken once)."""
+        each of `after_s` (the distances taken once); `per_start`: (A, N, F, 1 + K), the path
+        taking over now, then after a step of each of `held` (N, K, 2), apart."""
         coefficients, seconds = self.path if path is None else path
         a, b, c = coefficients.unbind(-1)
         starts = [0.0]
@@ -274,9 +276,10 @@ class PusherShield:
         when = (torch.tensor(starts, dtype=torch.float64)[:, None] + seconds[None])
         when = when.expand(n_candidates, *when.shape).reshape(1, -1)
         clearance = area.near(paths, self.clearance).signed_distance_after(paths, when)
+        shape = (count, n_candidates, len(starts), -1) if per_start else (count, n_candidates, -1)
         return torch.stack([
-            torch.where(when >= after, clearance, torch.inf).reshape(count, n_candidates, -1)
-            .amin(dim=-1) for after in after_s]) - self.clearance
+            torch.where(when >= after, clearance, torch.inf).reshape(shape).amin(dim=-1)
+            for after in after_s]) - self.clearance
 
     def _choose(self, area: RestrictedArea, p: Tensor, v: Tensor, held: Tensor,
                 goal: Tensor) -> tuple[Tensor, Tensor]:
@@ -328,7 +331,11 @@ class PusherShield:
             escape = area.project_out(p.float(), self.escape).double()
             fallback = torch.where(stuck[:, None], escape, fallback)
             if isinstance(area, MovingZones):
-                trapped = torch.nonzero(stuck & (area.reach() > 0)).flatten()
+                # Cornered by a moving zone: one that can reach the pusher's paths (a pusher
+                # stuck at a zone that stands still, moving ones far off, takes the escape).
+                reach = area.reach() + self._reach(p, v, held, goal) + self.clearance
+                trapped = torch.nonzero(stuck & (area.reach() > 0) & (
+                    area.moving.signed_distance(p.float()).double() < reach)).flatten()
                 if len(trapped):
                     # Ways out rather than points around the wanted setpoint (the ring left
                     # out): fewer paths to check, on the executor's time while a hand closes in.
@@ -422,28 +429,26 @@ class PusherShield:
                        candidates: Tensor, order: Tensor) -> Tensor:
         """(N,) `_first_safe` for rows where no candidate is safe a step late after every one
         of `held` (N, K, 2) (one sent just before a zone came, into it): a setpoint after which
-        no candidate is safe is one no choice now can help, and is left out; then the newer
-        of the rest count (the robot takes the newest that reached it), the oldest dropped
-        first, down to on time only, rather than an unchecked escape."""
-        count = held.shape[1]
-        if count == 1:  # the check that failed: on time only
-            return self._first_safe(area, p, v, None, candidates, order)
-        lost = torch.stack([self._first_safe(area, p, v, held[:, k:k + 1], candidates, order) < 0
-                            for k in range(count)], dim=1)  # (N, K)
-        # A lost one is replaced by the newest kept (a duplicate changes no check); a row whose
-        # every one is lost keeps them, and ends on time only.
-        newest_kept = torch.where(lost, -1, torch.arange(count)).amax(dim=1)
-        keep = torch.where(newest_kept[:, None] >= 0, ~lost, True)
-        held = torch.where(keep[..., None], held,
-                           held[torch.arange(len(held)), newest_kept.clamp_min(0)][:, None])
-        pick = torch.full((len(held),), -1, dtype=torch.long)
-        first = count if (~keep).any() else count - 1  # all of them, unchanged: refused
-        for newest in range(first, -1, -1):
+        no candidate is safe is one no choice now can help, and is left out; the choice is
+        then safe late after all the others, else after the newest of them (the robot takes
+        the newest that reached it), else on time only, rather than an unchecked escape. Lost
+        is judged on the quick check, which can only refuse: a setpoint it keeps that no
+        candidate is safe after only costs the step to the newest."""
+        rows, count = len(held), held.shape[1]
+        quick = self._margins(area, p, v, candidates, held, self.sparse_path,
+                              per_start=True)[0] >= 0  # (N, F, 1 + K)
+        lost = ~(quick[..., 1:] & quick[..., :1]).any(dim=1)  # (N, K)
+        newest_kept = torch.where(lost, -1, torch.arange(count)).amax(dim=1).clamp_min(0)
+        newest = held[torch.arange(rows), newest_kept][:, None]
+        # A lost one is replaced by the newest kept (a duplicate changes no check).
+        kept = torch.where(lost[..., None], newest, held)
+        pick = torch.full((rows,), -1, dtype=torch.long)
+        for in_force in ([kept] if lost.any() else []) + [newest, None]:
             again = torch.nonzero(pick < 0).flatten()
             if len(again) == 0:
                 break
             pick[again] = self._first_safe(area.select_rows(again), p[again], v[again],
-                                           held[again, count - newest:] if newest else None,
+                                           None if in_force is None else in_force[again],
                                            candidates[again], order[again])
         return pick
 

@@ -576,3 +576,25 @@ def test_a_cornered_pusher_never_runs_past_the_hand_to_a_retreat_beyond_it(
                      for a in robot.transition(60)[:, 0]])
     gap = here.signed_distance(torch.from_numpy(path)).min() - robot.pusher_radius
     assert gap > 0, f"the path to {chosen[0].round(1)} runs {-gap:.1f} px into the hand"
+
+
+def test_a_pusher_stuck_at_a_zone_that_stands_still_is_not_cornered_by_a_hand_far_off() -> None:
+    """Found live under a zone flood: a pusher inside a still zone's grown area (a setpoint
+    raced into it), with zones that might move at the far edge of the workspace, was taken
+    for cornered, and the search for the way out farthest from them all held the node's
+    executor for up to 1.5 s. Cornered is for a moving zone that can reach the pusher's paths;
+    this pusher takes the escape, out of the still zone."""
+    robot = PUSHT_ROBOT
+    still = ZoneSet.from_polygons([rectangle(200, 200, 260, 260)])
+    hand = ZoneSet.from_polygons([rectangle(20, 490, 32, 502)])
+    area = MovingZones(ZoneSet.from_polygons([rectangle(200, 200, 260, 260),
+                                              rectangle(20, 490, 32, 502)]),
+                       still, hand, BOUND, 0.05, robot.reaction_s)
+    shield = PusherShield(robot)
+    inside = np.array([[230.0, 195.0]])  # 5 px into the still zone, grown by the radius
+    chosen = shield(area.bounded(robot.workspace).inflate(robot.pusher_radius), inside,
+                    np.array([[230.0, 240.0]]), 0)
+    assert not shield.cornered.any()
+    grown = still.inflate(robot.pusher_radius)
+    clear = grown.signed_distance(torch.from_numpy(chosen).float())
+    assert clear.item() >= shield.escape - 1.0  # the escape: the nearest point 20 px clear

@@ -355,8 +355,14 @@ class PusherShield:
         what the zones may reach all along it: its closest point decides, so no path runs
         past a zone to a retreat beyond it (the pusher covers a hundred px and more within a
         control step). Where that ties (within TIE_PX: a zone already so close that every
-        path's first points decide), the one kept farthest after the first control step."""
+        path's first points decide), the one kept farthest after the first control step. A
+        path into a zone that stands still (or a wall) is taken only where every one is: what a
+        hand may reach is an assumption, a still zone is not, and a pusher kept far from a
+        hand's reach by running into one breaks the guarantee the still zone has."""
         whole, later = self._margins(area, p, v, candidates, after_s=(0.0, self.tick_s))
+        if isinstance(area, MovingZones):
+            clear = self._margin(area.still, p, v, candidates) >= 0
+            whole = torch.where(clear | ~clear.any(dim=1, keepdim=True), whole, -torch.inf)
         tied = whole >= whole.amax(dim=1, keepdim=True) - TIE_PX
         return torch.where(tied, later, -torch.inf).argmax(dim=1)
 

@@ -14,7 +14,7 @@ from constrained_diffusion_ros.planning.shield import MAX_GAP_STEPS, PusherShiel
 from constrained_diffusion_ros.policy.modeling import DiffusionPolicy
 from constrained_diffusion_ros.pusht import PUSHT_ROBOT
 from constrained_diffusion_ros.zones import EpisodeZones, ZoneSet, rectangle
-from constrained_diffusion_ros.zones.area import Translated
+from constrained_diffusion_ros.zones.area import AreaUnion, Translated
 from constrained_diffusion_ros.zones.motion import MovingZones
 from sim_bridge import AGENT_RADIUS, PushTSim
 
@@ -598,3 +598,19 @@ def test_a_pusher_stuck_at_a_zone_that_stands_still_is_not_cornered_by_a_hand_fa
     grown = still.inflate(robot.pusher_radius)
     clear = grown.signed_distance(torch.from_numpy(chosen).float())
     assert clear.item() >= shield.escape - 1.0  # the escape: the nearest point 20 px clear
+
+
+def test_a_cornered_pusher_never_takes_a_way_out_into_a_zone_that_stands_still() -> None:
+    """Cornered, the way out is the one kept farthest from what the hand may reach; but what
+    a hand may reach is an assumption and a still zone is not: a way into the still zone,
+    however far from the hand, loses to one that keeps out of it."""
+    robot = PUSHT_ROBOT
+    still = ZoneSet.from_polygons([rectangle(0, 230, 512, 282)]).inflate(robot.pusher_radius)
+    hand = ZoneSet.from_polygons([rectangle(246, 330, 266, 350)]).inflate(robot.pusher_radius)
+    area = MovingZones(AreaUnion([still, hand]), still, hand, BOUND, 0.05, robot.reaction_s)
+    shield = PusherShield(robot)
+    p = torch.tensor([[256.0, 300.0]], dtype=torch.float64)
+    v = torch.zeros(1, 2, dtype=torch.float64)
+    ways = torch.tensor([[[256.0, 200.0], [300.0, 300.0]]], dtype=torch.float64)  # up, aside
+    assert shield._margin(hand, p, v, ways)[0, 0] > shield._margin(hand, p, v, ways)[0, 1]
+    assert shield._farthest(area, p, v, ways).item() == 1

@@ -20,8 +20,7 @@ longer: a candidate must be safe taking over now or one step later (`late`), aft
 any setpoint that may be in force then (a node that answers one observation again, as plans
 or zones arrive, cannot know which of its answers the robot's tick met); where none is, safe
 late after those some candidate can be safe after, else after the newest, else on time only.
-With
-`slide=False` it takes the largest safe step along the line instead, as the filter before
+With `slide=False` it takes the largest safe step along the line instead, as the filter before
 did (it stops the pusher where the line grazes a zone).
 The last accepted setpoint was itself checked from the previous state and is a candidate, so a
 safe choice exists as long as the zones do not change under the pusher (a shield in the sense

@@ -334,7 +334,7 @@ class PusherShield:
                 # stuck at a zone that stands still, moving ones far off, takes the escape).
                 reach = area.reach() + self._reach(p, v, held, goal) + self.clearance
                 trapped = torch.nonzero(stuck & (area.reach() > 0) & (
-                    area.moving.signed_distance(p.float()).double() < reach)).flatten()
+                    area.moving_distance(p.float()).double() < reach)).flatten()
                 if len(trapped):
                     # Ways out rather than points around the wanted setpoint (the ring left
                     # out): fewer paths to check, on the executor's time while a hand closes in.

@@ -10,7 +10,7 @@ import torch
 from hypothesis import given
 from hypothesis import strategies as st
 
-from constrained_diffusion_ros.zones.geometry import ZoneSet
+from constrained_diffusion_ros.zones.geometry import ZoneSet, rectangle
 from constrained_diffusion_ros.zones.live import MAX_FORECAST, LiveZones
 from constrained_diffusion_ros.zones.motion import (
     COVER_PX,
@@ -227,3 +227,16 @@ def test_a_hand_whose_stamps_come_close_together_still_moves() -> None:
     assert motion.jumps == 0 and motion.moving("hand")
     motion.observe("hand", (100.0 + 15.0 * 6 + JUMP_PX + 1.0, 100.0), 0.152 + 1e-6)
     assert motion.jumps == 1 and not motion.moving("hand")
+
+
+def test_an_inflated_moving_zone_is_grown_in_its_distance_not_buffered() -> None:
+    """Inflated by a pusher's radius, the moving part keeps its few edges and is grown in its
+    signed distance, as its motion grows it: exact outside it (a buffer's round joins made a
+    flood of ids taken for moving cost a shield call most of a second)."""
+    hand = ZoneSet.from_polygons([rectangle(0, 0, 20, 20)])
+    area = MovingZones(hand, ZoneSet.empty(), hand, 100.0, 0.1, 0.45).inflate(15.0)
+    assert area.moving is hand and area.radius == 15.0
+    points = torch.tensor([[40.0, 10.0], [10.0, 10.0], [35.0, 35.0], [-30.0, 5.0]])
+    expected = hand.signed_distance(points) - 15.0 - 100.0 * (0.1 + 0.2)
+    assert torch.allclose(area.signed_distance_after(points, 0.2), expected, atol=1e-4)
+    assert torch.allclose(area.moving_distance(points), hand.signed_distance(points) - 15.0)

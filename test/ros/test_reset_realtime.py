@@ -87,8 +87,8 @@ class RealtimeObservations:
 
     def observe(self, step: int, pusher: tuple[float, float]) -> None:
         keypoints, message = observation_messages(step, pusher)
-        self.node.observations._on_keypoints(keypoints)
-        self.node.observations._on_pusher(message)
+        self.node.observations._on_keypoints(keypoints, {})
+        self.node.observations._on_pusher(message, {})
 
     def tick(self) -> list[tuple[int, tuple[float, float]]]:
         """The clock's tick: what it sent, as (stamp ns, point)."""
